@@ -1,0 +1,123 @@
+"""`FrodoNode`: the base of every FroDO node (parameters from specs, 1 Hz diagnostics, guarded callbacks)
+and `run_node`, the `main()` shared by all node entry points.
+
+A node never crashes the graph on bad input: callbacks wrapped with `guarded` log the error, count it,
+keep it as `last_error` in diagnostics and return.
+"""
+from __future__ import annotations
+
+import functools
+import sys
+import threading
+import traceback
+from collections import Counter
+from typing import Any, Callable
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+
+from frodo_common import topics
+from frodo_common.params import COMMON_PARAMS, ParamSpec
+
+# Diagnostic levels as ints (the message field is a single byte).
+OK, WARN, ERROR = 0, 1, 2
+
+
+class FrodoNode(Node):
+    """Node with declared parameters (`self.params`), counters and a periodic `/diagnostics` report.
+
+    Subclasses pass their `ParamSpec`s, add `self.count('frames_received')`-style counters, wrap
+    callbacks with `self.guarded(...)` and may override `diagnostic_values()` / `diagnostic_summary()`.
+    """
+
+    def __init__(self, node_name: str, specs: tuple[ParamSpec, ...], **kwargs):
+        super().__init__(node_name, **kwargs)
+        self.params: dict[str, Any] = {}
+        for spec in COMMON_PARAMS + tuple(specs):
+            value = self.declare_parameter(spec.name, spec.default,
+                                           ParameterDescriptor(description=spec.description)).value
+            self.params[spec.name] = value
+        self.counters: Counter[str] = Counter()
+        self.last_error = ''
+        self._lock = threading.Lock()
+        self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
+        self.create_timer(float(self.params['diagnostics_period']), self.publish_diagnostics)
+
+    # ------------------------------------------------------------ errors and counters
+    def count(self, name: str, n: int = 1) -> None:
+        """Increment a diagnostics counter."""
+        with self._lock:
+            self.counters[name] += n
+
+    def report_error(self, where: str, err: BaseException | str, counter: str = 'errors') -> None:
+        """Log an error, count it and keep it as last_error; never raises."""
+        text = f'{where}: {err}'
+        with self._lock:
+            self.counters[counter] += 1
+            self.last_error = text
+        self.get_logger().error(text, throttle_duration_sec=2.0)
+
+    def guarded(self, callback: Callable, where: str | None = None) -> Callable:
+        """Wrap a callback so that an exception is reported instead of killing the node."""
+        label = where or getattr(callback, '__name__', 'callback')
+
+        @functools.wraps(callback)
+        def wrapper(*args, **kwargs):
+            try:
+                return callback(*args, **kwargs)
+            except Exception as err:  # noqa: BLE001 - a node must survive bad input
+                self.get_logger().debug(traceback.format_exc())
+                self.report_error(label, err)
+                return None
+        return wrapper
+
+    # ------------------------------------------------------------ diagnostics
+    def diagnostic_values(self) -> dict[str, Any]:
+        """Node-specific key/values for the report (override)."""
+        return {}
+
+    def diagnostic_summary(self) -> tuple[int, str]:
+        """(level, message) for the report (override); default WARN while errors are recent."""
+        if self.last_error:
+            return WARN, f'running; last error: {self.last_error}'
+        return OK, 'running'
+
+    def publish_diagnostics(self) -> None:
+        """Publish one DiagnosticStatus for this node on /diagnostics."""
+        try:
+            level, message = self.diagnostic_summary()
+            with self._lock:
+                values = {**dict(self.counters), 'last_error': self.last_error}
+            values.update(self.diagnostic_values())
+            status = DiagnosticStatus(level=bytes([level]), name=self.get_name(), message=message,
+                                      hardware_id=self.get_fully_qualified_name(),
+                                      values=[KeyValue(key=str(k), value=str(v)) for k, v in values.items()])
+            msg = DiagnosticArray(status=[status])
+            msg.header.stamp = self.get_clock().now().to_msg()
+            self._diag_pub.publish(msg)
+        except Exception as err:  # noqa: BLE001
+            self.get_logger().error(f'diagnostics failed: {err}', throttle_duration_sec=5.0)
+
+
+def run_node(node_factory: Callable[[], Node], args: list[str] | None = None, threads: int = 2) -> int:
+    """Init rclpy, spin the node until Ctrl-C / SIGTERM / external shutdown, then clean up; returns an exit code."""
+    rclpy.init(args=args if args is not None else sys.argv)
+    node = None
+    try:
+        node = node_factory()
+        executor = MultiThreadedExecutor(num_threads=threads)
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            shutdown_hook = getattr(node, 'on_shutdown', None)
+            if shutdown_hook is not None:
+                shutdown_hook()
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

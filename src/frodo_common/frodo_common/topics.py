@@ -1,0 +1,29 @@
+"""Default topic names (CONTRACT.md and docs/ARCHITECTURE.md) and the QoS profiles they use."""
+from __future__ import annotations
+
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+# Contract inputs.
+IMAGE = '/camera/color/image_raw'
+CAMERA_INFO = '/camera/color/camera_info'
+POSE = '/camera/pose'
+INSTANCES = '/camera/instances'
+SLAM_POINTS = '/slam/points'
+GROUND_TRUTH = '/ground_truth/objects'
+# Contract outputs.
+OBJECTS = '/frodo/objects'
+BOXES = '/frodo/boxes'
+DIAGNOSTICS = '/diagnostics'
+# Internal topics.
+DETECTIONS = '/frodo/detections'
+ASSOCIATIONS = '/frodo/associations'
+TRACKS = '/frodo/tracks'
+CODES = '/frodo/codes'
+OBJECT_CODES = '/frodo/object_codes'
+
+# Per-frame sensor streams: reliable so a bag played fast loses nothing; deep queue for bursts.
+FRAME_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
+                       history=HistoryPolicy.KEEP_LAST)
+# Latched state (object map, boxes, tracks, fused codes): late joiners get the latest complete message.
+LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)

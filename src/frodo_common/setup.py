@@ -1,0 +1,26 @@
+"""Package setup for frodo_common (ament_python; also installable with pip)."""
+from setuptools import find_packages, setup
+
+package_name = 'frodo_common'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+    ],
+    include_package_data=True,
+    install_requires=['setuptools'],
+    zip_safe=False,
+    maintainer='FroDO maintainers',
+    maintainer_email='frodo@example.org',
+    description='Shared helpers of the FroDO graph: message conversions, geometry, categories, stamp-matched frame cache, MCAP bag IO, node base with diagnostics, evaluation protocol.',
+    license='Apache-2.0',
+    entry_points={
+        'console_scripts': [
+            
+        ],
+    },
+)
