@@ -20,7 +20,8 @@ setup(
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
-            'frodo = frodo_bringup.cli:main'
+            'frodo = frodo_bringup.cli:main',
+            'viewer_node = frodo_bringup.viewer_node:main'
         ],
     },
 )
