@@ -16,8 +16,6 @@ import trimesh
 
 from frodo_common.geometry import make_transform, transform_points, yaw_matrix
 
-STAGES = ('fused', 'sparse', 'dense')
-
 
 @dataclass
 class ObjectEstimate:

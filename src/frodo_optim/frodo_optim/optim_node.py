@@ -20,7 +20,8 @@ from frodo_common import topics
 from frodo_common.categories import category_by_id
 from frodo_common.node import ERROR, OK, WARN, FrodoNode, run_node
 from frodo_common.params import ParamSpec
-from frodo_optim.core import STAGES, ObjectEstimate, fused_estimate
+from frodo_optim.core import ObjectEstimate, fused_estimate
+from frodo_optim.states import OBJECT_STATES, STAGES, STATES_DTYPE
 from frodo_shape.prior import ShapePrior
 
 PARAMS = (
@@ -33,10 +34,6 @@ PARAMS = (
               'box updates alone just re-place the cached mesh.'),
 )
 
-OBJECT_STATES = '/frodo/object_states'
-STATES_DTYPE = np.dtype([('object_id', '<i4'), ('category', '<u2'), ('stage', 'u1'), ('num_views', '<u4'),
-                         ('scale', '<f8'), ('pose', '<f8', (16,)), ('box', '<f8', (7,)),
-                         ('code', '<f4', (64,)), ('seconds', '<f4')])
 CLASS_COLOURS = {'chair': (0.95, 0.55, 0.15, 1.0), 'dining table': (0.2, 0.6, 0.95, 1.0)}
 
 
