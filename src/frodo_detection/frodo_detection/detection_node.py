@@ -1,0 +1,134 @@
+"""Detection node (paper Sec. 4.1): per-frame instance masks for the association stage.
+
+In:  /camera/color/image_raw (rgb8/bgr8), /camera/instances (16UC1, backend 'external' only).
+Out: /frodo/detections (16UC1, the image's stamp and frame id; all zero when nothing was detected).
+
+Backend 'external' matches each image with the instance image of the same stamp (bounded cache) and
+filters it; backend 'maskrcnn' runs torchvision Mask R-CNN on each image and filters its output.
+Frames with invalid data are counted, reported on /diagnostics and skipped.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from sensor_msgs.msg import Image
+
+from frodo_common import conversions as conv
+from frodo_common import topics
+from frodo_common.categories import CATEGORIES, DEFAULT_CLASSES
+from frodo_common.frame_cache import FrameCache
+from frodo_common.node import FrodoNode, run_node
+from frodo_common.params import ParamSpec
+from frodo_detection.core import FRAGMENT_POLICIES, FilterConfig, MaskRCNNDetector, filter_instances
+
+BACKENDS = ('external', 'maskrcnn')
+_DEFAULT_CLASS_IDS = [c.coco_id for c in CATEGORIES if c.name in DEFAULT_CLASSES]
+
+PARAMS: tuple[ParamSpec, ...] = (
+    ParamSpec('backend', 'external', "Where masks come from: 'external' (/camera/instances) or 'maskrcnn' "
+              '(torchvision Mask R-CNN on each image).'),
+    ParamSpec('classes', _DEFAULT_CLASS_IDS, 'COCO category ids kept (62 chair, 63 couch, 65 bed, 67 dining table).'),
+    ParamSpec('min_area', 400, 'Instances with fewer mask pixels are dropped.'),
+    ParamSpec('min_box_side', 16, 'Instances whose box is narrower or lower than this (pixels) are dropped.'),
+    ParamSpec('drop_truncated', False, 'Drop instances touching the image border (truncated objects).'),
+    ParamSpec('border_margin', 2, 'Distance to the border (pixels) below which an instance counts as truncated.'),
+    ParamSpec('min_fragment_fraction', 0.05, 'Mask components smaller than this fraction of the instance area '
+              'are removed as specks (0 keeps all).'),
+    ParamSpec('fragment_policy', 'keep', "Instances still in several pieces: 'keep', 'largest' (keep the largest "
+              "piece) or 'drop'."),
+    ParamSpec('weights_path', '', 'Mask R-CNN v2 COCO checkpoint (maskrcnn_resnet50_fpn_v2_coco-73cbd019.pth); '
+              "'' = $TORCH_HOME/hub/checkpoints/."),
+    ParamSpec('device', 'cpu', "Torch device for Mask R-CNN: 'cpu' or 'cuda'."),
+    ParamSpec('score_threshold', 0.7, 'Mask R-CNN detections with a lower score are dropped.'),
+    ParamSpec('mask_threshold', 0.5, 'Mask R-CNN soft-mask probability threshold.'),
+    ParamSpec('input_min_size', 800, 'Mask R-CNN input resize (shorter side, pixels); smaller is faster.'),
+    ParamSpec('match_window', 60, "Frames held while waiting for the image's instance image (backend 'external')."),
+    ParamSpec('image_topic', topics.IMAGE, 'Colour image topic.'),
+    ParamSpec('instances_topic', topics.INSTANCES, "Instance image topic (backend 'external')."),
+)
+
+
+class DetectionNode(FrodoNode):
+    """Publishes the filtered instance image of every image frame on /frodo/detections."""
+
+    def __init__(self, detector: MaskRCNNDetector | None = None, **kwargs):
+        super().__init__('detection_node', PARAMS, **kwargs)
+        p = self.params
+        if p['backend'] not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {p['backend']!r}")
+        if p['fragment_policy'] not in FRAGMENT_POLICIES:
+            raise ValueError(f"fragment_policy must be one of {FRAGMENT_POLICIES}, got {p['fragment_policy']!r}")
+        self.filter_cfg = FilterConfig(
+            classes=tuple(int(c) for c in p['classes']), min_area=int(p['min_area']),
+            min_box_side=int(p['min_box_side']), drop_truncated=bool(p['drop_truncated']),
+            border_margin=int(p['border_margin']), min_fragment_fraction=float(p['min_fragment_fraction']),
+            fragment_policy=p['fragment_policy'])
+        self.detector = detector
+        if p['backend'] == 'maskrcnn' and detector is None:
+            self.detector = MaskRCNNDetector(p['weights_path'] or None, p['device'], p['score_threshold'],
+                                             p['mask_threshold'], self.filter_cfg.classes, int(p['input_min_size']))
+        self.cache = FrameCache(('image', 'instances'), int(p['match_window']))
+        self.pub = self.create_publisher(Image, topics.DETECTIONS, topics.FRAME_QOS)
+        # Own group: a slow Mask R-CNN call must not block the diagnostics timer.
+        group = MutuallyExclusiveCallbackGroup()
+        self.create_subscription(Image, p['image_topic'], self.guarded(self._on_image, 'image'), topics.FRAME_QOS,
+                                 callback_group=group)
+        if p['backend'] == 'external':
+            self.create_subscription(Image, p['instances_topic'], self.guarded(self._on_instances, 'instances'),
+                                     topics.FRAME_QOS, callback_group=group)
+
+    # ------------------------------------------------------------ callbacks
+    def _on_image(self, msg: Image) -> None:
+        self.count('frames_received')
+        if self.detector is not None:
+            self._process(msg, None)
+            return
+        frame = self.cache.add(conv.stamp_to_ns(msg.header.stamp), 'image', msg)
+        if frame is not None:
+            self._process(frame.parts['image'], frame.parts['instances'])
+
+    def _on_instances(self, msg: Image) -> None:
+        self.count('instances_received')
+        frame = self.cache.add(conv.stamp_to_ns(msg.header.stamp), 'instances', msg)
+        if frame is not None:
+            self._process(frame.parts['image'], frame.parts['instances'])
+
+    def _process(self, image: Image, instances: Image | None) -> None:
+        """Filter (or detect and filter) one frame and publish it; invalid frames are dropped and reported."""
+        stamp = conv.stamp_to_ns(image.header.stamp)
+        try:
+            if image.encoding not in ('rgb8', 'bgr8', 'rgba8', 'bgra8'):
+                raise conv.ConversionError(f'image encoding must be rgb8 or bgr8, got {image.encoding!r}')
+            if instances is None:
+                raw = self.detector.detect(conv.image_to_rgb(image))
+            else:
+                if instances.encoding != '16UC1':
+                    raise conv.ConversionError(f'instances encoding must be 16UC1, got {instances.encoding!r}')
+                raw = conv.image_to_numpy(instances)
+                if raw.shape != (image.height, image.width):
+                    raise conv.ConversionError(f'instances {raw.shape[1]}x{raw.shape[0]} and image '
+                                               f'{image.width}x{image.height} sizes differ')
+        except conv.ConversionError as err:
+            self.count('frames_dropped')
+            self.report_error(f'frame {stamp}', err)
+            return
+        filtered, detections = filter_instances(raw, self.filter_cfg)
+        self.pub.publish(conv.numpy_to_image(filtered, '16UC1', stamp, image.header.frame_id))
+        self.count('frames_published')
+        self.count('detections_published', len(detections))
+        self.cache.frames.pop(stamp, None)  # processed: free the images (the stamp stays marked complete)
+
+    def diagnostic_values(self) -> dict[str, Any]:
+        return {'backend': self.params['backend'], 'frames_cached': len(self.cache),
+                'frames_unmatched': self.cache.evicted_incomplete}
+
+
+def main(args=None) -> int:
+    """Entry point of `detection_node`."""
+    return run_node(DetectionNode, args)
+
+
+if __name__ == '__main__':
+    main()

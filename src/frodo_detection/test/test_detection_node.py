@@ -1,0 +1,102 @@
+"""The detection node in a real rclpy graph: every image frame with its instance image yields one
+/frodo/detections image with the same stamp; bad frames are reported on /diagnostics and skipped."""
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import Image
+
+from frodo_common import conversions as conv
+from frodo_common import topics
+from frodo_detection.detection_node import DetectionNode
+
+CHAIR, PERSON = 62, 1
+
+
+@pytest.fixture
+def graph():
+    rclpy.init()
+    executor = SingleThreadedExecutor()
+    probe = rclpy.create_node('detection_probe')
+    executor.add_node(probe)
+    got = {'det': [], 'diag': []}
+    probe.create_subscription(Image, topics.DETECTIONS, got['det'].append, topics.FRAME_QOS)
+    probe.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, got['diag'].append, 10)
+    pubs = {'image': probe.create_publisher(Image, topics.IMAGE, topics.FRAME_QOS),
+            'instances': probe.create_publisher(Image, topics.INSTANCES, topics.FRAME_QOS)}
+
+    def spin_until(cond, timeout=8.0):
+        deadline = time.time() + timeout
+        while time.time() < deadline and not cond():
+            executor.spin_once(timeout_sec=0.05)
+        return cond()
+
+    def add(node):
+        executor.add_node(node)
+        spin_until(lambda: pubs['image'].get_subscription_count() > 0, 5.0)
+        return node
+
+    try:
+        yield add, pubs, got, spin_until
+    finally:
+        executor.shutdown()
+        rclpy.shutdown()
+
+
+def _status(got, name='detection_node'):
+    statuses = [s for m in got['diag'] for s in m.status if s.name == name]
+    return {kv.key: kv.value for kv in statuses[-1].values} if statuses else {}
+
+
+def test_external_instances_are_filtered_and_bad_frames_survived(graph):
+    add, pubs, got, spin_until = graph
+    add(DetectionNode(parameter_overrides=[Parameter('min_area', value=50), Parameter('diagnostics_period', value=0.2)]))
+    inst = np.zeros((40, 60), np.uint16)
+    inst[5:25, 5:25] = CHAIR * 256 + 1
+    inst[5:25, 30:50] = PERSON * 256 + 2
+    rgb = np.zeros((40, 60, 3), np.uint8)
+    # Instances first, image second: matched by stamp whatever the order.
+    pubs['instances'].publish(conv.numpy_to_image(inst, '16UC1', 1000, 'cam'))
+    pubs['image'].publish(conv.numpy_to_image(rgb, 'rgb8', 1000, 'cam'))
+    assert spin_until(lambda: len(got['det']) == 1)
+    out = got['det'][0]
+    assert conv.stamp_to_ns(out.header.stamp) == 1000 and out.header.frame_id == 'cam' and out.encoding == '16UC1'
+    labels = conv.image_to_numpy(out)
+    assert set(np.unique(labels)) == {0, CHAIR * 256 + 1}
+    # Wrong encoding and size mismatch: reported, skipped.
+    pubs['image'].publish(conv.numpy_to_image(rgb, 'rgb8', 2000, 'cam'))
+    pubs['instances'].publish(conv.numpy_to_image(inst.astype(np.uint8), 'mono8', 2000, 'cam'))
+    pubs['image'].publish(conv.numpy_to_image(rgb, 'rgb8', 3000, 'cam'))
+    pubs['instances'].publish(conv.numpy_to_image(inst[:20], '16UC1', 3000, 'cam'))
+    # An empty frame still gives an (all zero) output.
+    pubs['image'].publish(conv.numpy_to_image(rgb, 'rgb8', 4000, 'cam'))
+    pubs['instances'].publish(conv.numpy_to_image(np.zeros_like(inst), '16UC1', 4000, 'cam'))
+    assert spin_until(lambda: len(got['det']) == 2)
+    assert conv.stamp_to_ns(got['det'][1].header.stamp) == 4000 and not conv.image_to_numpy(got['det'][1]).any()
+    assert spin_until(lambda: _status(got).get('frames_dropped') == '2')
+    status = _status(got)
+    assert status['frames_published'] == '2' and status['errors'] == '2' and 'sizes differ' in status['last_error']
+
+
+def test_maskrcnn_backend_with_injected_model(graph):
+    import torch
+    import torchvision
+
+    from frodo_detection.core import MaskRCNNDetector
+    add, pubs, got, spin_until = graph
+    torch.manual_seed(0)
+    model = torchvision.models.detection.maskrcnn_resnet50_fpn_v2(weights=None, weights_backbone=None,
+                                                                   min_size=64, max_size=96)
+    detector = MaskRCNNDetector(model=model, score_threshold=0.0, classes=None)
+    add(DetectionNode(detector=detector, parameter_overrides=[Parameter('backend', value='maskrcnn'),
+                                                              Parameter('min_area', value=1),
+                                                              Parameter('min_box_side', value=1)]))
+    rgb = np.random.default_rng(0).integers(0, 255, (48, 64, 3), dtype=np.uint8)
+    pubs['image'].publish(conv.numpy_to_image(rgb, 'bgr8', 5000, 'cam'))
+    assert spin_until(lambda: len(got['det']) == 1, 15.0)
+    out = conv.image_to_numpy(got['det'][0])
+    assert out.shape == (48, 64) and conv.stamp_to_ns(got['det'][0].header.stamp) == 5000
