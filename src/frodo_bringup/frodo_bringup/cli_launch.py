@@ -1,0 +1,51 @@
+"""`frodo launch`: start the node graph, one process per node, until Ctrl-C / SIGTERM or a failure."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from frodo_bringup.graph import NODES, GraphError, parse_node_spec, select_nodes, with_nodes
+from frodo_bringup.launcher import FAILURE_POLICIES, Launcher, describe_returncode
+from frodo_bringup.session import stop_on_signals
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of `frodo launch`."""
+    parser.add_argument('--params', action='append', default=[], metavar='FILE',
+                        help='ROS 2 parameter YAML overriding the defaults (repeatable; later files win); '
+                             'see `frodo params` for every parameter')
+    parser.add_argument('--nodes', metavar='A,B', type=lambda s: s.split(','),
+                        help=f'comma-separated subset of the graph ({",".join(n.name for n in NODES)}) '
+                             'and of the --add-node names')
+    parser.add_argument('--add-node', action='append', default=[], metavar='NAME=MODULE',
+                        help='also start MODULE.main() as node NAME (repeatable); a graph node\'s name replaces '
+                             'it, e.g. detection_node=my_pkg.my_detector')
+    parser.add_argument('--on-failure', choices=FAILURE_POLICIES, default='stop',
+                        help='when a node dies: stop the graph, restart the node (3 tries), or ignore it '
+                             '(default: %(default)s)')
+    parser.add_argument('--log-dir', metavar='DIR', help='also write each node\'s output to DIR/<node>.log')
+
+
+def run(args: argparse.Namespace) -> int:
+    """Start the graph and return when it is down: 0 when no node failed, 1 otherwise, 2 on bad options."""
+    try:
+        graph = with_nodes(NODES, [parse_node_spec(spec) for spec in args.add_node])
+        launcher = Launcher(select_nodes(args.nodes, graph), args.params, on_failure=args.on_failure,
+                            log_dir=args.log_dir)
+    except GraphError as err:
+        print(f'frodo launch: error: {err}', file=sys.stderr)
+        return 2
+    with stop_on_signals(on_repeat=launcher.kill) as stop:
+        launcher.start()
+        launcher.log(f'graph up: {", ".join(launcher.node_names)} (Ctrl-C to stop, twice to kill)')
+        stopping = False
+        while not launcher.wait(0.1):
+            if stop.is_set() and not stopping:
+                launcher.shutdown(timeout=0)
+                stopping = True
+    for name in dict.fromkeys(f.name for f in launcher.failures):
+        failures = [f for f in launcher.failures if f.name == name]
+        times = f' ({len(failures)} times)' if len(failures) > 1 else ''
+        launcher.log(f'FAILED: {name} {describe_returncode(failures[-1].returncode)}{times}')
+    launcher.log('graph down')
+    return launcher.returncode

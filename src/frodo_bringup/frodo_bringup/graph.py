@@ -1,0 +1,135 @@
+"""The FroDO node graph: the one table of nodes (`NODES`) and the parameter YAML generated from their specs.
+
+`frodo launch`, `frodo run`, `frodo params` and the ROS 2 launch file all read this table; parameter
+defaults come from each node module's `PARAMS` (plus `COMMON_PARAMS`), imported lazily because some
+nodes pull in heavy dependencies (torch).
+"""
+from __future__ import annotations
+
+import importlib
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import yaml
+
+from frodo_common.params import COMMON_PARAMS, ParamSpec
+
+PACKAGE = 'frodo_bringup'
+
+
+@dataclass(frozen=True)
+class GraphNode:
+    """One node of the graph: ROS node name, Python module (exposes `main()` and `PARAMS`), ROS package."""
+
+    name: str
+    module: str
+    package: str
+
+
+# The graph, in data-flow order. Node name == console script name == launch file executable.
+NODES: tuple[GraphNode, ...] = (
+    GraphNode('detection_node', 'frodo_detection.detection_node', 'frodo_detection'),
+    GraphNode('association_node', 'frodo_association.association_node', 'frodo_association'),
+    GraphNode('shape_node', 'frodo_shape.shape_node', 'frodo_shape'),
+    GraphNode('optim_node', 'frodo_optim.optim_node', 'frodo_optim'),
+)
+# Optional Rerun viewer (`frodo run --viewer rrd`, launch argument `viewer:=true`); not part of NODES.
+VIEWER = GraphNode('viewer_node', 'frodo_bringup.viewer_node', 'frodo_bringup')
+# The node whose diagnostics (`state`, `pending_objects`) say when a bag is fully processed.
+OPTIMISER = 'optim_node'
+
+
+class GraphError(RuntimeError):
+    """A node name, node module or parameter file of the graph is invalid."""
+
+
+def select_nodes(names: Iterable[str] | None, nodes: Sequence[GraphNode] = NODES) -> tuple[GraphNode, ...]:
+    """The nodes named in `names` (all when None), in graph order; raises GraphError on unknown names."""
+    if names is None:
+        return tuple(nodes)
+    wanted = [n.strip() for n in names if n.strip()]
+    known = {n.name for n in nodes}
+    unknown = [n for n in wanted if n not in known]
+    if unknown:
+        raise GraphError(f'unknown node(s) {", ".join(unknown)}; the graph has {", ".join(sorted(known))}')
+    return tuple(n for n in nodes if n.name in wanted)
+
+
+def parse_node_spec(spec: str) -> GraphNode:
+    """A GraphNode from `NAME=MODULE` (an extra node for `--add-node`); raises GraphError on bad syntax."""
+    name, sep, module = spec.partition('=')
+    if not sep or not name.strip() or not module.strip():
+        raise GraphError(f'bad node {spec!r}: expected NAME=MODULE, e.g. my_detector=my_pkg.detector_node')
+    return GraphNode(name.strip(), module.strip(), module.strip().split('.')[0])
+
+
+def with_nodes(nodes: Sequence[GraphNode], extra: Sequence[GraphNode]) -> tuple[GraphNode, ...]:
+    """`nodes` with `extra` added; an extra node named like a graph node replaces it in place."""
+    replacements = {n.name: n for n in extra}
+    merged = [replacements.pop(n.name, n) for n in nodes]
+    return tuple(merged) + tuple(n for n in extra if n.name in replacements)
+
+
+def node_params(node: GraphNode) -> tuple[ParamSpec, ...]:
+    """The node's own parameter specs (its module's `PARAMS`); raises GraphError when it cannot be imported."""
+    try:
+        module = importlib.import_module(node.module)
+    except ImportError as err:
+        raise GraphError(f'{node.name}: cannot import {node.module} ({err})') from err
+    specs = getattr(module, 'PARAMS', None)
+    if specs is None:
+        raise GraphError(f'{node.name}: {node.module} has no module-level PARAMS')
+    return tuple(specs)
+
+
+def _yaml_scalar(value: Any) -> str:
+    """One value in YAML flow style (lists inline), as a params file wants it."""
+    return yaml.safe_dump(value, default_flow_style=True, width=1 << 16).strip().removesuffix('\n...').strip()
+
+
+def _params_block(key: str, specs: Sequence[ParamSpec]) -> list[str]:
+    lines = [f'{key}:', '  ros__parameters:']
+    lines += [f'    {s.name}: {_yaml_scalar(s.default)}  # {s.description}' for s in specs]
+    return lines
+
+
+def params_yaml(nodes: Sequence[GraphNode] = NODES + (VIEWER,)) -> str:
+    """ROS 2 params file with every parameter's default and description: common ones under `/**`."""
+    lines = ['# FroDO parameter defaults, generated from the nodes\' PARAMS by `frodo params --write`.',
+             '# Do not edit by hand: change the ParamSpec in the node and regenerate. Override values in your',
+             '# own file and pass it with `frodo launch --params FILE` (later files win).', '']
+    lines += _params_block("'/**'", COMMON_PARAMS)
+    for node in nodes:
+        lines += [''] + _params_block(node.name, node_params(node))
+    return '\n'.join(lines) + '\n'
+
+
+def _share_candidates() -> list[Path]:
+    here = Path(__file__).resolve()
+    candidates = [here.parents[1]]  # source tree / editable install: src/frodo_bringup
+    try:
+        from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
+        try:
+            candidates.append(Path(get_package_share_directory(PACKAGE)))
+        except PackageNotFoundError:
+            pass
+    except ImportError:
+        pass
+    candidates.append(Path(sys.prefix) / 'share' / PACKAGE)  # pip install with data_files
+    return candidates
+
+
+def share_file(relative: str) -> Path:
+    """Path of a shipped file (`config/frodo.yaml`, `launch/frodo.launch.py`) in the source tree or install."""
+    for base in _share_candidates():
+        if (base / relative).is_file():
+            return base / relative
+    raise GraphError(f'{PACKAGE}: shipped file {relative} not found (looked in '
+                     f'{", ".join(str(b) for b in _share_candidates())})')
+
+
+def source_config_path() -> Path:
+    """Where `frodo params --write` writes the shipped YAML: the package's source tree."""
+    return Path(__file__).resolve().parents[1] / 'config' / 'frodo.yaml'
