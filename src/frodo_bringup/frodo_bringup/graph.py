@@ -10,7 +10,7 @@ import importlib
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Iterable, Iterator, Sequence
 
 import yaml
 
@@ -106,28 +106,25 @@ def params_yaml(nodes: Sequence[GraphNode] = NODES + (VIEWER,)) -> str:
     return '\n'.join(lines) + '\n'
 
 
-def _share_candidates() -> list[Path]:
-    here = Path(__file__).resolve()
-    candidates = [here.parents[1]]  # source tree / editable install: src/frodo_bringup
+def _share_dirs() -> Iterator[Path]:
+    """Where shipped files may be: the source tree (editable install), the ament index, the pip prefix."""
+    yield Path(__file__).resolve().parents[1]
     try:
-        from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
-        try:
-            candidates.append(Path(get_package_share_directory(PACKAGE)))
-        except PackageNotFoundError:
-            pass
-    except ImportError:
+        from ament_index_python.packages import get_package_share_directory
+        yield Path(get_package_share_directory(PACKAGE))
+    except (ImportError, LookupError, OSError):  # not installed / package unknown / AMENT_PREFIX_PATH unset
         pass
-    candidates.append(Path(sys.prefix) / 'share' / PACKAGE)  # pip install with data_files
-    return candidates
+    yield Path(sys.prefix) / 'share' / PACKAGE
 
 
 def share_file(relative: str) -> Path:
     """Path of a shipped file (`config/frodo.yaml`, `launch/frodo.launch.py`) in the source tree or install."""
-    for base in _share_candidates():
+    searched = []
+    for base in _share_dirs():
         if (base / relative).is_file():
             return base / relative
-    raise GraphError(f'{PACKAGE}: shipped file {relative} not found (looked in '
-                     f'{", ".join(str(b) for b in _share_candidates())})')
+        searched.append(str(base))
+    raise GraphError(f'{PACKAGE}: shipped file {relative} not found (looked in {", ".join(searched)})')
 
 
 def source_config_path() -> Path:

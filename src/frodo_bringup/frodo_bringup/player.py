@@ -192,15 +192,24 @@ class Player:
         return (self._messages[-1].log_time_ns - self._messages[0].log_time_ns) / 1e9
 
     def unmatched_topics(self, wanted: Iterable[str] | None = None) -> list[str]:
-        """Output topics (default: the required contract inputs that are played) with no matched subscriber."""
-        by_output = {self.output_topic(t): pub for t, pub in self._publishers.items()}
+        """Output topics not yet matched with every subscriber the graph shows, or with none while `wanted`.
+
+        `wanted` defaults to the played required contract inputs (image, camera info, pose).
+        """
         if wanted is None:
             wanted = [self.output_topic(t) for t in REQUIRED_INPUTS if t in self._publishers]
-        return [t for t in wanted if t in by_output and by_output[t].get_subscription_count() == 0]
+        wanted = set(wanted)
+        unmatched = []
+        for topic, publisher in self._publishers.items():
+            output = self.output_topic(topic)
+            matched = publisher.get_subscription_count()
+            if matched < self.node.count_subscribers(output) or (output in wanted and matched == 0):
+                unmatched.append(output)
+        return unmatched
 
     def wait_for_subscribers(self, timeout: float, wanted: Iterable[str] | None = None,
                              stop: threading.Event | None = None) -> list[str]:
-        """Wait until every topic in `wanted` has a matched subscriber; returns those still unmatched."""
+        """Wait until `unmatched_topics(wanted)` is empty (nothing is lost at startup); returns what is left."""
         wanted = list(wanted) if wanted is not None else None
         deadline = time.monotonic() + timeout
         stop = stop or threading.Event()

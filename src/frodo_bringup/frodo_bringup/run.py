@@ -33,6 +33,8 @@ from frodo_optim.states import OBJECT_STATES, states_to_records
 # Exit codes of `frodo run`.
 EXIT_OK, EXIT_GRAPH_FAILED, EXIT_NOT_DONE, EXIT_INTERRUPTED = 0, 1, 3, 130
 RECORDING_FILE = 'frodo.rrd'
+# Seconds to wait, once every node has reported, for the player's topics to match the nodes' subscriptions.
+SUBSCRIPTION_MATCH_TIMEOUT = 10.0
 # Consecutive optimiser reports of idle / 0 pending (after the bag ended) that mean "done".
 DONE_REPORTS = 2
 
@@ -87,6 +89,11 @@ class OutputCollector:
                     idle = values.get('state') == 'idle' and values.get('pending_objects') == '0'
                     self._optimiser_reports.append((now, idle))
 
+    def missing_reports(self, names: Sequence[str]) -> list[str]:
+        """Nodes in `names` that have not reported on /diagnostics yet (so may still be constructing)."""
+        with self._lock:
+            return sorted(set(names) - set(self.statuses))
+
     def optimiser_done(self, since: float) -> bool:
         """True when the last DONE_REPORTS optimiser reports, all received after `since`, say idle / 0 pending."""
         with self._lock:
@@ -99,16 +106,6 @@ class OutputCollector:
             objects, boxes, states = self.objects, self.boxes, self.states
         info = states_to_records(cloud_to_table(states)) if states is not None else {}
         return objects, boxes, info
-
-
-def wait_for_nodes(node: Node, names: Sequence[str], timeout: float, stop: threading.Event) -> list[str]:
-    """Wait until all `names` are visible in the ROS graph; returns the ones still missing."""
-    deadline = time.monotonic() + timeout
-    while True:
-        missing = sorted(set(names) - set(node.get_node_names()))
-        if not missing or time.monotonic() >= deadline or stop.is_set():
-            return missing
-        stop.wait(0.1)
 
 
 def run_bag(bag: str | os.PathLike, out_dir: str | os.PathLike, params_files: Sequence[str | os.PathLike] = (),
@@ -159,17 +156,21 @@ def _viewer_params(out: Path) -> Path:
 def _play_and_wait(node: Node, collector: OutputCollector, launcher: Launcher, bag, rate: float, timeout: float,
                    startup_timeout: float, stop: threading.Event, progress: bool,
                    ground_truth: bool) -> tuple[PlayStats | None, bool]:
-    missing = wait_for_nodes(node, launcher.node_names, startup_timeout, stop)
+    deadline = time.monotonic() + startup_timeout
+    while collector.missing_reports(launcher.node_names) and time.monotonic() < deadline and not stop.is_set():
+        stop.wait(0.1)
     if stop.is_set():
         return None, False
+    missing = collector.missing_reports(launcher.node_names)
     if missing:
-        launcher.log(f'nodes not up after {startup_timeout:.0f} s: {", ".join(missing)}; playing anyway')
+        launcher.log(f'no diagnostics from {", ".join(missing)} after {startup_timeout:.0f} s; playing anyway')
     player = Player(node, bag, rate=rate, progress=progress, ground_truth=ground_truth)
     for problem in player.problems:
         launcher.log(f'bag: {problem}')
-    unmatched = player.wait_for_subscribers(startup_timeout, stop=stop)
+    unmatched = player.wait_for_subscribers(SUBSCRIPTION_MATCH_TIMEOUT, wanted=[topics.IMAGE], stop=stop)
     if unmatched:
-        launcher.log(f'no subscriber on {", ".join(unmatched)} after {startup_timeout:.0f} s; playing anyway')
+        launcher.log(f'subscribers of {", ".join(unmatched)} not matched after {SUBSCRIPTION_MATCH_TIMEOUT:.0f} s '
+                     '(QoS mismatch?); playing anyway')
     launcher.log(f'playing {player.message_count} messages ({player.duration:.1f} s of bag time)')
     stats = player.play(stop)
     finished = time.monotonic()

@@ -21,11 +21,11 @@ def stub(name: str) -> GraphNode:
     return GraphNode(name, 'frodo_bringup.stub_node', 'frodo_bringup')
 
 
-def write_contract_bag(path: str | os.PathLike, frames: int = 10, period: float = 0.1,
-                       ground_truth: bool = True) -> list[int]:
-    """A tiny contract bag (8x6 images, camera info, poses, optional ground truth); returns the frame stamps."""
+def write_contract_bag(path: str | os.PathLike, frames: int = 10, period: float = 0.1, ground_truth: bool = True,
+                       width: int = 8, height: int = 6) -> list[int]:
+    """A small contract bag (images, camera info, poses, optional ground truth); returns the frame stamps."""
     stamps = [BAG_START_NS + int(i * period * 1e9) for i in range(frames)]
-    K = np.array([[10.0, 0, 4], [0, 10.0, 3], [0, 0, 1]])
+    K = np.array([[10.0, 0, width / 2], [0, 10.0, height / 2], [0, 0, 1]])
     with BagWriter(path) as bag:
         if ground_truth:
             bag.add_topic(topics.GROUND_TRUTH, 'visualization_msgs/msg/MarkerArray',
@@ -34,9 +34,9 @@ def write_contract_bag(path: str | os.PathLike, frames: int = 10, period: float 
             marker = conv.mesh_to_marker(vertices, np.array([[0, 1, 2]]), 'chair', 1, stamps[0], 'world')
             bag.write(topics.GROUND_TRUTH, MarkerArray(markers=[marker]), stamps[0])
         for i, stamp in enumerate(stamps):
-            bag.write(topics.CAMERA_INFO, conv.make_camera_info(K, 8, 6, stamp, 'camera'), stamp)
-            bag.write(topics.IMAGE, conv.numpy_to_image(np.full((6, 8, 3), i, np.uint8), 'rgb8', stamp, 'camera'),
-                      stamp)
+            image = np.full((height, width, 3), i % 256, np.uint8)
+            bag.write(topics.CAMERA_INFO, conv.make_camera_info(K, width, height, stamp, 'camera'), stamp)
+            bag.write(topics.IMAGE, conv.numpy_to_image(image, 'rgb8', stamp, 'camera'), stamp)
             bag.write(topics.POSE, conv.make_pose_stamped(np.eye(4), stamp, 'world'), stamp)
     return stamps
 

@@ -1,0 +1,75 @@
+"""`frodo run` (`run_bag`) on a stand-in graph: plays the bag, waits for the optimiser to be done, writes
+objects.json and PLY meshes, and exits non-zero naming the node when the graph fails."""
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import trimesh
+from visualization_msgs.msg import MarkerArray
+
+from frodo_bringup.outputs import object_records, write_outputs
+from frodo_bringup.run import EXIT_GRAPH_FAILED, EXIT_OK, run_bag
+from frodo_bringup.stub_node import TETRAHEDRON_FACES
+from frodo_bringup.testing import stub, write_contract_bag
+from frodo_common import conversions as conv
+
+STUB_GRAPH = (stub('detection_node'), stub('optim_node'))
+
+
+def _params(tmp_path, **optimiser) -> str:
+    lines = ["'/**':", '  ros__parameters:', '    diagnostics_period: 0.2', 'optim_node:', '  ros__parameters:',
+             '    act_as_optimiser: true']
+    lines += [f'    {k}: {v}' for k, v in optimiser.items()]
+    path = tmp_path / 'params.yaml'
+    path.write_text('\n'.join(lines) + '\n')
+    return str(path)
+
+
+def test_run_writes_objects_and_meshes(tmp_path):
+    write_contract_bag(tmp_path / 'in.mcap', frames=10, period=0.05)
+    output = io.StringIO()
+    result = run_bag(tmp_path / 'in.mcap', tmp_path / 'out', [_params(tmp_path)], timeout=15, rate=0,
+                     nodes=STUB_GRAPH, startup_timeout=20, output=output, progress=False)
+    assert result.exit_code == EXIT_OK, output.getvalue()
+    assert result.done and result.play.total == 30
+    document = json.loads((tmp_path / 'out' / 'objects.json').read_text())
+    (obj,) = document['objects']
+    assert (obj['id'], obj['class'], obj['mesh']) == (7, 'chair', 'meshes/7_chair.ply')
+    assert np.allclose(obj['box']['size'], 0.4) and len(obj['pose']) == 4
+    mesh = trimesh.load(tmp_path / 'out' / obj['mesh'])
+    assert len(mesh.faces) == len(TETRAHEDRON_FACES) and len(mesh.vertices) == 4
+    assert (tmp_path / 'out' / 'logs' / 'optim_node.log').is_file()
+    assert 'done: 30 messages played, 1 objects' in output.getvalue()
+
+
+def test_run_reports_a_crashed_node(tmp_path):
+    write_contract_bag(tmp_path / 'in.mcap', frames=200, period=0.05)  # 10 s of bag at rate 1
+    output = io.StringIO()
+    result = run_bag(tmp_path / 'in.mcap', tmp_path / 'out', [_params(tmp_path, crash_after=1.0)], timeout=5,
+                     nodes=STUB_GRAPH, startup_timeout=20, output=output, progress=False)
+    assert result.exit_code == EXIT_GRAPH_FAILED, output.getvalue()
+    assert [f.name for f in result.failures] == ['optim_node'] and result.failures[0].returncode == 3
+    assert 'node failure: optim_node exited with code 3' in output.getvalue()
+    assert (result.play is None or result.play.interrupted) and result.seconds < 15
+
+
+def test_outputs_follow_marker_actions_and_prefer_optimiser_info(tmp_path):
+    vertices = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    faces = np.array([[0, 1, 2], [0, 1, 3]])
+    objects = MarkerArray(markers=[conv.mesh_to_marker(vertices, faces, 'dining table', 2, 0, 'world'),
+                                   conv.mesh_to_marker(vertices, faces, 'chair', 3, 0, 'world'),
+                                   conv.delete_marker('chair', 3, 0, 'world')])
+    boxes = MarkerArray(markers=[conv.box_to_marker((1, 2, 0.5), (1.8, 0.9, 1.0), 0.3, 'dining table', 2, 0,
+                                                    'world')])
+    info = {2: {'stage': 'dense', 'num_views': 12, 'scale': 0.7}}
+    records = write_outputs(tmp_path, objects, boxes, info)
+    assert [r['id'] for r in records] == [2]  # object 3 was deleted
+    (table,) = records
+    assert (table['stage'], table['num_views'], table['scale']) == ('dense', 12, 0.7)
+    assert np.allclose(np.array(table['pose'])[:3, 3], [1, 2, 0.5])
+    assert abs(table['box']['yaw'] - 0.3) < 1e-9
+    mesh = trimesh.load(tmp_path / 'meshes' / '2_dining_table.ply')
+    assert np.allclose(sorted(mesh.vertices.tolist()), sorted(vertices.tolist()))
+    assert object_records(None, None) == []
