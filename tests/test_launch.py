@@ -96,6 +96,21 @@ def test_restart_policy_restarts_then_gives_up(tmp_path):
     assert 'restarting beta' in output.getvalue() and launcher.returncode == 1
 
 
+def test_node_ignoring_sigint_gets_sigterm_after_the_timeout(tmp_path, probe):
+    params = tmp_path / 'stubborn.yaml'
+    params.write_text('alpha:\n  ros__parameters:\n    ignore_sigint: true\n')
+    output = io.StringIO()
+    launcher = Launcher([stub('alpha')], [params], sigint_timeout=1.0, output=output)
+    launcher.start()
+    assert wait_until(lambda: 'alpha' in probe.get_node_names(), 20)
+    time.sleep(0.5)  # the handler is installed at the end of the node's constructor
+    started = time.monotonic()
+    assert launcher.shutdown(timeout=10)
+    assert 1.0 <= time.monotonic() - started < 5
+    assert 'alpha did not stop, sending SIGTERM' in output.getvalue()
+    assert not _alive(launcher.pids.values())
+
+
 def test_bad_launch_options_are_explained(tmp_path):
     with pytest.raises(GraphError, match='unknown node'):
         select_nodes(['detection_node', 'nope'])

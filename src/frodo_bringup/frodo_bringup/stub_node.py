@@ -1,7 +1,7 @@
 """A configurable stand-in node for launcher tests and dry runs of the command line.
 
 It counts images on the contract image topic and reports on /diagnostics; optionally it crashes with a
-given exit code after a delay, and optionally it behaves like a minimal optimiser: `state` /
+given exit code after a delay or ignores Ctrl-C, and optionally it behaves like a minimal optimiser: `state` /
 `pending_objects` diagnostics and one fixed object (a tetrahedron and its box) on the latched
 /frodo/objects and /frodo/boxes once images have arrived. Launch it under any node name with
 `-r __node:=NAME`.
@@ -9,6 +9,7 @@ given exit code after a delay, and optionally it behaves like a minimal optimise
 from __future__ import annotations
 
 import os
+import signal
 import sys
 import time
 from typing import Any
@@ -27,6 +28,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec('crash_code', 3, 'Exit code used by crash_after.'),
     ParamSpec('act_as_optimiser', False, 'Report state/pending_objects and publish one object after images.'),
     ParamSpec('busy_for', 0.5, 'As optimiser: seconds after the last image during which state is busy.'),
+    ParamSpec('ignore_sigint', False, 'Ignore SIGINT (a node that hangs on Ctrl-C; SIGTERM still stops it).'),
 )
 TETRAHEDRON_VERTICES = np.array([[0.0, 0.0, 0.0], [0.4, 0.0, 0.0], [0.0, 0.4, 0.0], [0.0, 0.0, 0.4]]) + [1, 2, 0]
 TETRAHEDRON_FACES = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
@@ -44,6 +46,8 @@ class StubNode(FrodoNode):
         self.boxes_pub = self.create_publisher(MarkerArray, topics.BOXES, topics.LATCHED_QOS)
         if self.params['crash_after'] > 0:
             self.create_timer(float(self.params['crash_after']), self.crash)
+        if self.params['ignore_sigint']:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     def on_image(self, msg: Image) -> None:
         """Count the frame; as optimiser publish the fixed object once."""
