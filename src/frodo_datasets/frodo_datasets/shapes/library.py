@@ -1,0 +1,97 @@
+"""Registry of the procedural shape families: seeded generation and shape libraries.
+
+`generate(class_name, seed, family)` is deterministic: the same arguments give identical vertices. Without
+a family, seed `k` uses family `families(class_name)[k % len(families)]`, so `generate(c, k)` equals
+`generate(c, k, families(c)[k % n])`. Meshes come back in the canonical metric frame (see `canonical`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import trimesh
+
+from . import chairs, tables
+from .canonical import centre_on_bbox
+
+Generator = Callable[[np.random.Generator], trimesh.Trimesh]
+
+FAMILIES: dict[str, dict[str, Generator]] = {
+    'chair': {
+        'four_leg': chairs.four_leg_chair,
+        'office': chairs.office_chair,
+        'stool': chairs.stool,
+        'armchair': chairs.armchair,
+    },
+    'dining table': {
+        'four_leg': tables.four_leg_table,
+        'pedestal': tables.pedestal_table,
+        'trestle': tables.trestle_table,
+        'coffee': tables.coffee_table,
+    },
+}
+
+
+@dataclass
+class ShapeRecord:
+    """One shape of a library: a metric mesh in the canonical frame and where it came from.
+
+    `family` is a procedural family name, or 'shapenet' / 'user' for loaded meshes; `seed` is the
+    generator seed (-1 for loaded meshes); `watertight` is False for a loaded mesh that could not be
+    repaired into a closed volume; `source` is the file it was loaded from (None when procedural).
+    """
+    name: str
+    class_name: str
+    family: str
+    seed: int
+    mesh: trimesh.Trimesh
+    watertight: bool = True
+    source: Path | None = None
+
+
+def class_names() -> list[str]:
+    """COCO class names with procedural families."""
+    return list(FAMILIES)
+
+
+def families(class_name: str) -> list[str]:
+    """Procedural family names of a COCO class ('chair' or 'dining table')."""
+    return list(_families_of(class_name))
+
+
+def _families_of(class_name: str) -> dict[str, Generator]:
+    try:
+        return FAMILIES[class_name]
+    except KeyError as error:
+        raise ValueError(f'no procedural shapes for class {class_name!r}; known classes: {class_names()}') from error
+
+
+def generate(class_name: str, seed: int, family: str | None = None) -> trimesh.Trimesh:
+    """Procedural watertight mesh of `class_name` in the canonical metric frame (z up, front +x, bbox
+    centred at the origin), deterministic in (`class_name`, `seed`, `family`); `seed` >= 0."""
+    generators = _families_of(class_name)
+    names = list(generators)
+    family = names[seed % len(names)] if family is None else family
+    if family not in generators:
+        raise ValueError(f'unknown family {family!r} of class {class_name!r}; families: {names}')
+    mesh = generators[family](np.random.default_rng(seed))
+    return centre_on_bbox(mesh)
+
+
+def library(class_name: str, count: int, seed: int = 0) -> list[ShapeRecord]:
+    """`count` procedural shapes of `class_name`, families cycling evenly (record i has family i mod n).
+
+    Shape seeds are distinct and drawn deterministically from `seed`; each record can be regenerated with
+    `generate(record.class_name, record.seed, record.family)`.
+    """
+    names = families(class_name)
+    shape_seeds = np.random.default_rng(seed).choice(2**31, size=count, replace=False)
+    slug = class_name.replace(' ', '_')
+    records = []
+    for index, shape_seed in enumerate(int(s) for s in shape_seeds):
+        family = names[index % len(names)]
+        records.append(ShapeRecord(name=f'{slug}-{family}-{shape_seed}', class_name=class_name, family=family,
+                                   seed=shape_seed, mesh=generate(class_name, shape_seed, family)))
+    return records
