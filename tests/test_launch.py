@@ -74,6 +74,18 @@ def test_sigint_stops_frodo_launch_without_orphans(probe):
     assert wait_until(lambda: not _alive(children), 2), f'orphans: {_alive(children)}'
 
 
+def test_nodes_die_with_a_killed_launcher(probe):
+    proc = subprocess.Popen([sys.executable, '-m', 'frodo_bringup.cli', 'launch', *STUB_ARGS],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        assert wait_until(lambda: {'alpha', 'beta'} <= set(probe.get_node_names()), 20)
+        children = [p.pid for p in psutil.Process(proc.pid).children(recursive=True)]
+    finally:
+        proc.kill()  # SIGKILL: no chance to clean up; the kernel's parent-death signal stops the nodes
+        proc.wait()
+    assert wait_until(lambda: not _alive(children), 8), f'orphans: {_alive(children)}'
+
+
 def test_crashing_node_is_reported_by_name_and_stops_the_graph(tmp_path):
     proc = subprocess.run([sys.executable, '-m', 'frodo_bringup.cli', 'launch', *STUB_ARGS,
                            '--params', str(_crash_params(tmp_path, 'beta'))],

@@ -11,7 +11,8 @@ from frodo_bringup.session import RosSession, stop_on_signals
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `frodo play`."""
     parser.add_argument('bag', metavar='BAG', help='ROS 2 MCAP bag (CONTRACT.md format)')
-    parser.add_argument('--rate', type=float, default=1.0, help='playback speed factor; 0 = as fast as possible (default: %(default)s)')
+    parser.add_argument('--rate', type=float, default=1.0,
+                        help='playback speed factor; 0 = as fast as possible (default: %(default)s)')
     parser.add_argument('--start-offset', type=float, default=0.0, metavar='S',
                         help='skip the first S seconds of the bag')
     parser.add_argument('--loop', action='store_true', help='play the bag again and again until Ctrl-C')

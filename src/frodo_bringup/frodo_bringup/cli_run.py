@@ -18,8 +18,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--params', action='append', default=[], metavar='FILE',
                         help='ROS 2 parameter YAML overriding the defaults (repeatable)')
     parser.add_argument('--timeout', type=float, default=300.0, metavar='S',
-                        help='after the bag has played, wait at most S s for the optimiser to finish (default: %(default)s)')
-    parser.add_argument('--rate', type=float, default=1.0, help='playback speed factor; 0 = as fast as possible (default: %(default)s)')
+                        help='after the bag has played, wait at most S s for the optimiser to finish '
+                             '(default: %(default)s)')
+    parser.add_argument('--rate', type=float, default=1.0,
+                        help='playback speed factor; 0 = as fast as possible (default: %(default)s)')
     parser.add_argument('--viewer', choices=('none', 'rrd'), default='none',
                         help='rrd: also run the Rerun viewer node, saving DIR/frodo.rrd (ground truth included) '
                              '(default: %(default)s)')

@@ -286,7 +286,9 @@ class Launcher:
         for proc in alive:
             self._signal_group(proc.popen, signal.SIGINT)
         for proc in self._procs:
-            proc.restart_at = None
+            if proc.restart_at is not None:  # dead, waiting for a restart that is now cancelled
+                proc.restart_at = None
+                proc.stopped = True
         return time.monotonic()
 
     def _escalate_if_late(self, stop_started: float, escalation: int) -> int:
