@@ -27,13 +27,13 @@ def _params(tmp_path, **optimiser) -> str:
     return str(path)
 
 
-def test_run_writes_objects_and_meshes(tmp_path):
+def test_run_writes_objects_meshes_and_recording(tmp_path):
     write_contract_bag(tmp_path / 'in.mcap', frames=10, period=0.05)
     output = io.StringIO()
     result = run_bag(tmp_path / 'in.mcap', tmp_path / 'out', [_params(tmp_path)], timeout=15, rate=0,
-                     nodes=STUB_GRAPH, startup_timeout=20, output=output, progress=False)
+                     viewer='rrd', nodes=STUB_GRAPH, startup_timeout=30, output=output, progress=False)
     assert result.exit_code == EXIT_OK, output.getvalue()
-    assert result.done and result.play.total == 30
+    assert result.done and result.play.total == 31  # ground truth included for the viewer
     document = json.loads((tmp_path / 'out' / 'objects.json').read_text())
     (obj,) = document['objects']
     assert (obj['id'], obj['class'], obj['mesh']) == (7, 'chair', 'meshes/7_chair.ply')
@@ -41,7 +41,8 @@ def test_run_writes_objects_and_meshes(tmp_path):
     mesh = trimesh.load(tmp_path / 'out' / obj['mesh'])
     assert len(mesh.faces) == len(TETRAHEDRON_FACES) and len(mesh.vertices) == 4
     assert (tmp_path / 'out' / 'logs' / 'optim_node.log').is_file()
-    assert 'done: 30 messages played, 1 objects' in output.getvalue()
+    assert (tmp_path / 'out' / 'frodo.rrd').stat().st_size > 0
+    assert 'done: 31 messages played, 1 objects' in output.getvalue()
 
 
 def test_run_reports_a_crashed_node(tmp_path):
