@@ -6,10 +6,12 @@ import io
 import json
 
 import numpy as np
+import pytest
 import trimesh
 from visualization_msgs.msg import MarkerArray
 
 from frodo_bringup.outputs import object_records, write_outputs
+from frodo_bringup.player import PlayerError
 from frodo_bringup.run import EXIT_GRAPH_FAILED, EXIT_OK, run_bag
 from frodo_bringup.stub_node import TETRAHEDRON_FACES
 from frodo_bringup.testing import stub, write_contract_bag
@@ -54,6 +56,11 @@ def test_run_reports_a_crashed_node(tmp_path):
     assert [f.name for f in result.failures] == ['optim_node'] and result.failures[0].returncode == 3
     assert 'node failure: optim_node exited with code 3' in output.getvalue()
     assert (result.play is None or result.play.interrupted) and result.seconds < 15
+
+
+def test_run_rejects_a_missing_bag_before_starting_nodes(tmp_path):
+    with pytest.raises(PlayerError, match='bag not found'):
+        run_bag(tmp_path / 'missing.mcap', tmp_path / 'out', nodes=STUB_GRAPH)
 
 
 def test_outputs_follow_marker_actions_and_prefer_optimiser_info(tmp_path):

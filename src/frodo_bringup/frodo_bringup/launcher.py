@@ -171,6 +171,8 @@ class Launcher:
 
     def shutdown(self, timeout: float | None = None) -> bool:
         """Stop all nodes (SIGINT, then SIGTERM, then SIGKILL) and wait; returns True when down."""
+        if self._monitor is None:  # never started
+            return True
         self._requests.put('stop')
         return self.wait(timeout)
 

@@ -1,12 +1,14 @@
 """`run_bag`: one complete reconstruction of a bag (what `frodo run` does).
 
 Launch the graph, wait until its nodes are up and subscribed, play the bag, wait until the optimiser
-reports `state` = idle and `pending_objects` = 0 after the bag has finished (CONTRACT.md "Done"),
+reports `state` = idle and `pending_objects` = 0 after the bag has finished (CONTRACT.md "Done") and
+no node's diagnostics counters move any more (see `OutputCollector.done`),
 write the output files from the latched `/frodo/objects`, `/frodo/boxes` and `/frodo/object_states`,
 shut the graph down. With `viewer='rrd'` the Rerun viewer node records the run to `DIR/frodo.rrd`.
 """
 from __future__ import annotations
 
+import collections
 import os
 import sys
 import threading
@@ -24,7 +26,7 @@ from visualization_msgs.msg import MarkerArray
 from frodo_bringup.graph import NODES, OPTIMISER, VIEWER, GraphNode
 from frodo_bringup.launcher import Launcher, NodeExit
 from frodo_bringup.outputs import summary_table, write_outputs
-from frodo_bringup.player import PlayStats, Player, PlayerError
+from frodo_bringup.player import PlayStats, Player
 from frodo_bringup.session import RosSession
 from frodo_common import topics
 from frodo_common.conversions import cloud_to_table
@@ -35,7 +37,7 @@ EXIT_OK, EXIT_GRAPH_FAILED, EXIT_NOT_DONE, EXIT_INTERRUPTED = 0, 1, 3, 130
 RECORDING_FILE = 'frodo.rrd'
 # Seconds to wait, once every node has reported, for the player's topics to match the nodes' subscriptions.
 SUBSCRIPTION_MATCH_TIMEOUT = 10.0
-# Consecutive optimiser reports of idle / 0 pending (after the bag ended) that mean "done".
+# Consecutive reports (after the bag ended) of an idle optimiser and unchanged node counters that mean "done".
 DONE_REPORTS = 2
 
 
@@ -52,15 +54,15 @@ class RunResult:
 
 
 class OutputCollector:
-    """Keeps the latest `/frodo/objects`, `/frodo/boxes`, `/frodo/object_states` and node diagnostics."""
+    """Keeps the latest `/frodo/objects`, `/frodo/boxes`, `/frodo/object_states` and each node's last
+    DONE_REPORTS `/diagnostics` reports (receive time, key/values)."""
 
     def __init__(self, node: Node, optimiser: str = OPTIMISER):
         self.optimiser = optimiser
         self.objects: MarkerArray | None = None
         self.boxes: MarkerArray | None = None
         self.states: PointCloud2 | None = None
-        self.statuses: dict[str, dict[str, str]] = {}
-        self._optimiser_reports: list[tuple[float, bool]] = []  # (receive time, idle with nothing pending)
+        self._reports: dict[str, collections.deque[tuple[float, dict[str, str]]]] = {}
         self._lock = threading.Lock()
         node.create_subscription(MarkerArray, topics.OBJECTS, self._on_objects, topics.LATCHED_QOS)
         node.create_subscription(MarkerArray, topics.BOXES, self._on_boxes, topics.LATCHED_QOS)
@@ -83,22 +85,38 @@ class OutputCollector:
         now = time.monotonic()
         with self._lock:
             for status in msg.status:
-                values = {kv.key: kv.value for kv in status.values}
-                self.statuses[status.name] = values
-                if status.name == self.optimiser:
-                    idle = values.get('state') == 'idle' and values.get('pending_objects') == '0'
-                    self._optimiser_reports.append((now, idle))
+                reports = self._reports.setdefault(status.name, collections.deque(maxlen=DONE_REPORTS))
+                reports.append((now, {kv.key: kv.value for kv in status.values}))
 
     def missing_reports(self, names: Sequence[str]) -> list[str]:
         """Nodes in `names` that have not reported on /diagnostics yet (so may still be constructing)."""
         with self._lock:
-            return sorted(set(names) - set(self.statuses))
+            return sorted(set(names) - set(self._reports))
 
-    def optimiser_done(self, since: float) -> bool:
-        """True when the last DONE_REPORTS optimiser reports, all received after `since`, say idle / 0 pending."""
+    def _recent(self, name: str, since: float) -> list[dict[str, str]]:
+        """The node's last DONE_REPORTS reports if all were received after `since`, else []."""
+        reports = list(self._reports.get(name, ()))
+        if len(reports) < DONE_REPORTS or reports[0][0] <= since:
+            return []
+        return [values for _, values in reports]
+
+    def done(self, names: Sequence[str], since: float) -> bool:
+        """The graph has finished what it got before `since`.
+
+        CONTRACT.md "Done": the optimiser reports `state` idle with `pending_objects` 0, here in its last
+        DONE_REPORTS reports after `since`; and, so that frames still queued upstream are not missed,
+        every node in `names` reported the same key/values (counters) in its last DONE_REPORTS reports.
+        """
         with self._lock:
-            recent = [idle for received, idle in self._optimiser_reports if received > since]
-        return len(recent) >= DONE_REPORTS and all(recent[-DONE_REPORTS:])
+            optimiser = self._recent(self.optimiser, since)
+            if not optimiser or not all(v.get('state') == 'idle' and v.get('pending_objects') == '0'
+                                        for v in optimiser):
+                return False
+            for name in names:
+                recent = self._recent(name, since)
+                if not recent or any(values != recent[0] for values in recent[1:]):
+                    return False
+        return True
 
     def snapshot(self) -> tuple[MarkerArray | None, MarkerArray | None, dict[int, dict[str, Any]]]:
         """(objects, boxes, per-object info from the optimiser's states) as last received."""
@@ -113,12 +131,13 @@ def run_bag(bag: str | os.PathLike, out_dir: str | os.PathLike, params_files: Se
             nodes: Sequence[GraphNode] = NODES, startup_timeout: float = 60.0,
             stop: threading.Event | None = None, output: TextIO | None = None, progress: bool = True,
             env: dict[str, str] | None = None) -> RunResult:
-    """Reconstruct one bag end to end; `timeout` bounds the wait for the graph after the bag has played."""
+    """Reconstruct one bag end to end; `timeout` bounds the wait for the graph after the bag has played.
+
+    Raises PlayerError (missing or unreadable bag) before any node is started.
+    """
     output = output or sys.stdout
     stop = stop or threading.Event()
     started = time.monotonic()
-    if not Path(bag).is_file():
-        raise PlayerError(f'bag not found: {bag}')
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if viewer == 'rrd':
@@ -126,12 +145,12 @@ def run_bag(bag: str | os.PathLike, out_dir: str | os.PathLike, params_files: Se
     launcher = Launcher(nodes, params_files, on_failure='stop', log_dir=out / 'logs', output=output, env=env,
                         on_exit=lambda exit_: stop.set() if not exit_.expected else None)
     session = RosSession('frodo_run')
-    collector = OutputCollector(session.node)
     result = RunResult(EXIT_OK)
     try:
+        player = Player(session.node, bag, rate=rate, progress=progress, ground_truth=viewer == 'rrd')
+        collector = OutputCollector(session.node)
         launcher.start()
-        result.play, result.done = _play_and_wait(session.node, collector, launcher, bag, rate, timeout,
-                                                  startup_timeout, stop, progress, ground_truth=viewer == 'rrd')
+        result.play, result.done = _play_and_wait(player, collector, launcher, timeout, startup_timeout, stop)
         result.records = write_outputs(out, *collector.snapshot())
     finally:
         launcher.shutdown()
@@ -140,7 +159,7 @@ def run_bag(bag: str | os.PathLike, out_dir: str | os.PathLike, params_files: Se
     result.seconds = time.monotonic() - started
     crashed = any(not e.expected for e in launcher.exits)
     result.exit_code = _exit_code(result, interrupted=stop.is_set() and not crashed)
-    _report(launcher, result, out, output)
+    _report(result, out, output)
     return result
 
 
@@ -153,9 +172,9 @@ def _viewer_params(out: Path) -> Path:
     return path
 
 
-def _play_and_wait(node: Node, collector: OutputCollector, launcher: Launcher, bag, rate: float, timeout: float,
-                   startup_timeout: float, stop: threading.Event, progress: bool,
-                   ground_truth: bool) -> tuple[PlayStats | None, bool]:
+def _play_and_wait(player: Player, collector: OutputCollector, launcher: Launcher, timeout: float,
+                   startup_timeout: float, stop: threading.Event) -> tuple[PlayStats | None, bool]:
+    """Wait for the nodes, play, wait until done; returns (playback stats or None, done)."""
     deadline = time.monotonic() + startup_timeout
     while collector.missing_reports(launcher.node_names) and time.monotonic() < deadline and not stop.is_set():
         stop.wait(0.1)
@@ -164,7 +183,6 @@ def _play_and_wait(node: Node, collector: OutputCollector, launcher: Launcher, b
     missing = collector.missing_reports(launcher.node_names)
     if missing:
         launcher.log(f'no diagnostics from {", ".join(missing)} after {startup_timeout:.0f} s; playing anyway')
-    player = Player(node, bag, rate=rate, progress=progress, ground_truth=ground_truth)
     for problem in player.problems:
         launcher.log(f'bag: {problem}')
     unmatched = player.wait_for_subscribers(SUBSCRIPTION_MATCH_TIMEOUT, wanted=[topics.IMAGE], stop=stop)
@@ -176,11 +194,12 @@ def _play_and_wait(node: Node, collector: OutputCollector, launcher: Launcher, b
     finished = time.monotonic()
     deadline = finished + timeout
     while not stop.is_set() and time.monotonic() < deadline:
-        if collector.optimiser_done(since=finished):
+        if collector.done(launcher.node_names, since=finished):
             return stats, True
         stop.wait(0.1)
     if not stop.is_set():
-        launcher.log(f'{OPTIMISER} did not report idle with 0 pending objects within {timeout:.0f} s')
+        launcher.log(f'graph not done within {timeout:.0f} s of the bag\'s end ({OPTIMISER} idle with 0 pending '
+                     'objects and all node counters steady)')
     return stats, False
 
 
@@ -192,7 +211,7 @@ def _exit_code(result: RunResult, interrupted: bool) -> int:
     return EXIT_OK if result.done else EXIT_NOT_DONE
 
 
-def _report(launcher: Launcher, result: RunResult, out: Path, output: TextIO) -> None:
+def _report(result: RunResult, out: Path, output: TextIO) -> None:
     print(summary_table(result.records), file=output)
     played = f'{result.play.total} messages played' if result.play is not None else 'bag not played'
     state = {EXIT_OK: 'done', EXIT_GRAPH_FAILED: 'FAILED', EXIT_NOT_DONE: 'NOT DONE (timeout)',
