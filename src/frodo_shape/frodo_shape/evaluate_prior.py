@@ -1,0 +1,220 @@
+"""Measurements of a shape prior (paper Sec. 3 embedding quality, Sec. 4.2 single-view encoder, supp. speed).
+
+    python -m frodo_shape.evaluate_prior --prior furniture [--heldout 10] [--views 3] [--out metrics.json]
+
+- Auto-decoder fit: codes of held-out procedural shapes (seeds never trained on) are optimised against
+  their SDF samples (`ShapePrior.fit_sdf`), meshed, scaled to metres, and compared with the ground truth.
+- Training reconstruction: the same for training shapes with their learnt codes.
+- Single-view encoder: held-out shapes rendered like the encoder's training data (random view, material,
+  light, floor/wall/backdrop), cropped at the true box (`crops.square_crop`), encoded, meshed, compared.
+- Speed: SDF decoder points/s (forward, forward+backward), point decoder time, encoder images/s.
+
+Metrics at metric object scale: CD = ½(mean NN distance pred→gt + gt→pred) in cm on 10k surface samples
+each; F1@τ (%) = harmonic mean of precision (pred points within τ of gt) and recall (gt within τ of pred);
+voxel IoU at 32³ over [-1, 1]³ in the normalised frame (inside test of gt vs decoded SDF < 0).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+from scipy.spatial import cKDTree
+
+from frodo_shape.meshing import grid_points
+from frodo_shape.prior import ShapePrior
+from frodo_shape.sdf_data import SamplingConfig, cached_samples, inside
+from frodo_shape.train import TrainingShape, library_shapes, render_scene
+
+HELDOUT_SEED = 7919  # library seed of the held-out shapes (training priors use library_seed 0)
+
+
+def surface_metrics(pred: trimesh.Trimesh, gt: trimesh.Trimesh, n: int = 10000, taus=(0.01, 0.05),
+                    seed: int = 0) -> dict:
+    """CD (cm) and F1@τ (%) between two metric meshes; an empty prediction scores CD=inf, F1=0."""
+    if len(pred.faces) == 0:
+        return {'cd_cm': float('inf'), **{f'f1@{int(t * 100)}cm': 0.0 for t in taus}}
+    p, _ = trimesh.sample.sample_surface(pred, n, seed=seed)
+    g, _ = trimesh.sample.sample_surface(gt, n, seed=seed + 1)
+    d_pg, _ = cKDTree(g).query(p)
+    d_gp, _ = cKDTree(p).query(g)
+    out = {'cd_cm': float(50 * (d_pg.mean() + d_gp.mean()))}
+    for t in taus:
+        prec, rec = (d_pg < t).mean(), (d_gp < t).mean()
+        out[f'f1@{int(round(t * 100))}cm'] = float(0 if prec + rec == 0 else 200 * prec * rec / (prec + rec))
+    return out
+
+
+def voxel_iou(prior: ShapePrior, code: np.ndarray, gt_normalised: trimesh.Trimesh, resolution: int = 32) -> float:
+    """IoU of occupancy grids (resolution³ cell centres in [-1, 1]³): gt inside test vs decoded SDF < 0."""
+    h = 1.0 / resolution
+    pts = grid_points(resolution, 1.0 - h).reshape(-1, 3)
+    occ_gt = inside(gt_normalised, pts)
+    occ_pred = prior.sdf_numpy(pts, code) < 0
+    union = np.logical_or(occ_gt, occ_pred).sum()
+    return float(np.logical_and(occ_gt, occ_pred).sum() / union) if union else 1.0
+
+
+def _metric(mesh: trimesh.Trimesh, scale: float) -> trimesh.Trimesh:
+    m = mesh.copy()
+    m.apply_scale(scale)
+    return m
+
+
+def _summary(rows: list[dict]) -> dict:
+    keys = [k for k in rows[0] if isinstance(rows[0][k], float)] if rows else []
+    return {k: {'median': float(np.median([r[k] for r in rows])), 'mean': float(np.mean([r[k] for r in rows]))}
+            for k in keys}
+
+
+def evaluate_fit(prior: ShapePrior, shapes: list[TrainingShape], steps: int = 400, resolution: int = 64,
+                 cache_dir: Path | None = None) -> list[dict]:
+    """Auto-decoder fit of `shapes` (codes optimised on their SDF samples): per-shape metrics."""
+    rows = []
+    for i, s in enumerate(shapes):
+        smp = cached_samples(s.mesh, SamplingConfig(), cache_dir, seed=10_000 + i)
+        code = prior.fit_sdf(smp.points, smp.sdf, steps=steps, seed=i)
+        mesh = prior.mesh(code, resolution)
+        rows.append({'name': s.name, 'class': s.class_name, **surface_metrics(_metric(mesh, s.scale), _metric(s.mesh, s.scale))})
+    return rows
+
+
+def evaluate_training(prior: ShapePrior, count: int, resolution: int = 64) -> list[dict]:
+    """Reconstruction of the first `count` procedural training shapes per class from their learnt codes."""
+    from frodo_datasets.shapes import generate, normalise
+    rows = []
+    for c in prior.class_names:
+        picked = [i for i, s in enumerate(prior.training_shapes) if s['class'] == c and s.get('seed') is not None]
+        for i in picked[:count]:
+            s = prior.training_shapes[i]
+            gt, scale = normalise(generate(c, int(s['seed']), s['family']))
+            mesh = prior.mesh(prior.training_codes[i].cpu().numpy(), resolution)
+            rows.append({'name': s['name'], 'class': c, **surface_metrics(_metric(mesh, scale), _metric(gt, scale))})
+    return rows
+
+
+def heldout_views(shapes: list[TrainingShape], views: int, seed: int = 1234, size: int = 128):
+    """Rendered test crops: list of (shape index, crop (size, size, 3) uint8, mask (size, size) bool)."""
+    from frodo_shape.crops import square_crop
+    out = []
+    for i, s in enumerate(shapes):
+        rng = np.random.default_rng([seed, i])
+        n = 0
+        while n < views:
+            v = render_scene(s, rng)
+            if v is None:
+                continue
+            crop, cmask = square_crop(*v, size, 0.1)
+            out.append((i, crop, cmask))
+            n += 1
+    return out
+
+
+def evaluate_encoder(prior: ShapePrior, shapes: list[TrainingShape], views: int, resolution: int = 64) -> tuple[list[dict], list]:
+    """Single-view reconstruction of held-out shapes from rendered crops: per-view metrics (+ the crops)."""
+    data = heldout_views(shapes, views)
+    codes = prior.encode(np.stack([d[1] for d in data]), np.stack([d[2] for d in data]))
+    rows = []
+    for (i, _, _), code in zip(data, codes):
+        s = shapes[i]
+        mesh = prior.mesh(code, resolution)
+        rows.append({'name': s.name, 'class': s.class_name,
+                     **surface_metrics(_metric(mesh, s.scale), _metric(s.mesh, s.scale)),
+                     'voxel_iou': voxel_iou(prior, code, s.mesh)})
+    return rows, list(zip(data, codes))
+
+
+def measure_speed(prior: ShapePrior, repeats: int = 5) -> dict:
+    """Decoder and encoder throughput on the prior's device."""
+    dev = prior.device
+    dec = prior.decoder
+    z = prior.training_codes[:1].clone()
+    x = torch.rand(1, 65536, 3, device=dev) * 2 - 1
+
+    def timed(fn) -> float:
+        fn()
+        t = time.perf_counter()
+        for _ in range(repeats):
+            fn()
+        if dev.type == 'cuda':
+            torch.cuda.synchronize()
+        return (time.perf_counter() - t) / repeats
+
+    with torch.no_grad():
+        fwd = timed(lambda: dec.sdf(z, x))
+        pts = timed(lambda: dec.points(z))
+    zg = z.clone().requires_grad_(True)
+    fb = timed(lambda: dec.sdf(zg, x).sum().backward())
+    pfb = timed(lambda: dec.points(zg).sum().backward())
+    out = {'sdf_points_per_s_fwd': 65536 / fwd, 'sdf_points_per_s_fwd_bwd': 65536 / fb,
+           'point_decoder_ms_fwd': 1000 * pts, 'point_decoder_ms_fwd_bwd': 1000 * pfb}
+    if prior.encoder is not None:
+        s = prior.encoder.config.input_size
+        crops = np.zeros((32, s, s, 3), np.uint8)
+        out['encoder_images_per_s'] = 32 / timed(lambda: prior.encode(crops, np.ones((32, s, s), bool)))
+    t = time.perf_counter()
+    prior.mesh(z[0].cpu().numpy(), 64)
+    out['mesh_64_s'] = time.perf_counter() - t
+    return out
+
+
+def machine() -> str:
+    """One line naming the machine the numbers were measured on."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path('/proc/cpuinfo').read_text().splitlines():
+            if line.startswith('model name'):
+                cpu = line.split(':', 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f'{cpu}, {torch.get_num_threads()} torch threads, torch {torch.__version__}'
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap.add_argument('--prior', default='furniture')
+    ap.add_argument('--heldout', type=int, default=10, help='held-out procedural shapes per class')
+    ap.add_argument('--train-count', type=int, default=5, help='training shapes per class to reconstruct')
+    ap.add_argument('--views', type=int, default=3, help='rendered views per held-out shape (encoder)')
+    ap.add_argument('--fit-steps', type=int, default=400)
+    ap.add_argument('--resolution', type=int, default=64)
+    ap.add_argument('--threads', type=int, default=2)
+    ap.add_argument('--cache', default=None, help='SDF sample cache folder')
+    ap.add_argument('--out', default=None, help='write the results as JSON here')
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    prior = ShapePrior.load(args.prior)
+    results: dict = {'prior': str(prior.path), 'machine': machine()}
+    t = time.time()
+    held = library_shapes(prior.class_names, args.heldout, seed=HELDOUT_SEED)
+    assert not set(s.name for s in held) & set(prior.training_names), 'held-out shapes overlap the training set'
+    results['speed'] = measure_speed(prior)
+    print('speed', json.dumps(results['speed'], indent=1), flush=True)
+    rows = evaluate_fit(prior, held, args.fit_steps, args.resolution, Path(args.cache) if args.cache else None)
+    results['heldout_fit'] = {'summary': _summary(rows), 'per_class': {c: _summary([r for r in rows if r['class'] == c])
+                                                                       for c in prior.class_names}, 'rows': rows}
+    print('held-out auto-decoder fit', json.dumps(results['heldout_fit']['summary']), flush=True)
+    rows = evaluate_training(prior, args.train_count, args.resolution)
+    if rows:
+        results['training_recon'] = {'summary': _summary(rows), 'rows': rows}
+        print('training reconstruction', json.dumps(results['training_recon']['summary']), flush=True)
+    if prior.encoder is not None and args.views > 0:
+        rows, _ = evaluate_encoder(prior, held, args.views, args.resolution)
+        results['heldout_single_view'] = {'summary': _summary(rows), 'per_class': {
+            c: _summary([r for r in rows if r['class'] == c]) for c in prior.class_names}, 'rows': rows}
+        print('held-out single view', json.dumps(results['heldout_single_view']['summary']), flush=True)
+    results['seconds'] = time.time() - t
+    if args.out:
+        Path(args.out).write_text(json.dumps(results, indent=1))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
