@@ -12,6 +12,9 @@ setup(
         ('share/' + package_name, ['package.xml']),
     ],
     include_package_data=True,
+    # Shipped priors (weights, config, training codes, model card, plots) and training configs.
+    package_data={package_name: ['configs/*.yaml', 'priors/*/*.pt', 'priors/*/*.yaml', 'priors/*/*.md',
+                                 'priors/*/*.png', 'priors/*/*.json']},
     install_requires=['setuptools'],
     zip_safe=False,
     maintainer='FroDO maintainers',

@@ -164,6 +164,92 @@ def measure_speed(prior: ShapePrior, repeats: int = 5) -> dict:
     return out
 
 
+def thumbnail(mesh: trimesh.Trimesh, size: int = 128, color=(0.75, 0.72, 0.65)) -> np.ndarray:
+    """Grey-shaded render (size, size, 3) uint8 of a normalised-frame mesh from the front-left, slightly above."""
+    from frodo_common.geometry import look_at
+    from frodo_datasets.render import Light, Material, RenderObject, Renderer
+    if len(mesh.faces) == 0:
+        return np.full((size, size, 3), 255, np.uint8)
+    eye = np.array([2.6, 1.6, 1.4])
+    f = 0.5 * size / 0.3
+    K = np.array([[f, 0, (size - 1) / 2], [0, f, (size - 1) / 2], [0, 0, 1.0]])
+    res = Renderer([RenderObject(mesh, Material(color=color), label=1)]).render(
+        K, look_at(eye, np.zeros(3)), size, size, light=Light(direction=(-0.5, -0.8, -1.0)), ambient=0.4,
+        shadows=False, background=(1.0, 1.0, 1.0))
+    return res.rgb
+
+
+def retrieval_figure(prior: ShapePrior, shapes: list[TrainingShape], path: str | Path, rows: int = 6, k: int = 4,
+                     seed: int = 99) -> None:
+    """CAD retrieval (supplement Fig. "nearest CAD models"): input crop, then the k nearest training shapes."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    from frodo_datasets.shapes import generate, normalise
+    picked = [shapes[i] for i in np.random.default_rng(seed).choice(len(shapes), min(rows, len(shapes)), replace=False)]
+    data = heldout_views(picked, 1, seed=seed)
+    codes = prior.encode(np.stack([d[1] for d in data]), np.stack([d[2] for d in data]))
+    fig, axes = plt.subplots(len(data), k + 2, figsize=(1.6 * (k + 2), 1.7 * len(data)), squeeze=False)
+    for r, ((i, crop, _), code) in enumerate(zip(data, codes)):
+        panels = [(crop, 'input crop'), (thumbnail(picked[i].mesh), 'true shape')]
+        for j, name, dist in prior.nearest_training(code, k):
+            s = prior.training_shapes[j]
+            mesh = normalise(generate(s['class'], int(s['seed']), s['family']))[0] if s.get('seed') is not None \
+                else prior.mesh(prior.training_codes[j], 48)
+            panels.append((thumbnail(mesh), f'{s["family"]} d={dist:.2f}'))
+        for ax, (img, title) in zip(axes[r], panels):
+            ax.imshow(img)
+            ax.set_title(title, fontsize=7)
+            ax.axis('off')
+    fig.suptitle(f'CAD retrieval with prior {prior.path.name}: held-out crop, true shape, {k} nearest training shapes '
+                 'in code space', fontsize=8)
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def compare_point_decoders(prior: ShapePrior, variants=('small', 'paper'), steps: int = 400, batch: int = 16,
+                           lr: float = 1e-3, seed: int = 0) -> dict:
+    """Capacity of point-decoder variants: each is fitted from scratch to the training shapes' surfaces
+    with the prior's (frozen) training codes, same steps and batch; returns per variant the parameter count,
+    ms per training step, and the final chamfer (CD as in `surface_metrics`, cm at metric scale)."""
+    from frodo_datasets.shapes import generate, normalise
+    from frodo_shape.models import POINT_DECODER_VARIANTS, PointDecoder
+    from frodo_shape.train import chamfer
+    idx = [i for i, s in enumerate(prior.training_shapes) if s.get('seed') is not None]
+    surf = torch.stack([torch.from_numpy(trimesh.sample.sample_surface(
+        normalise(generate(prior.training_shapes[i]['class'], int(prior.training_shapes[i]['seed']),
+                           prior.training_shapes[i]['family']))[0], 2048, seed=i)[0]).float() for i in idx])
+    codes = prior.training_codes[idx].cpu()
+    scales = torch.tensor(prior.training_scales[idx], dtype=torch.float32)
+    out = {}
+    for v in variants:
+        torch.manual_seed(seed)
+        net = PointDecoder(prior.code_dim, POINT_DECODER_VARIANTS[v], prior.decoder.point_net.num_points)
+        opt = torch.optim.Adam(net.parameters(), lr=lr)
+        gen = torch.Generator().manual_seed(seed)
+        t = time.perf_counter()
+        for _ in range(steps):
+            b = torch.randint(0, len(idx), (batch,), generator=gen)
+            loss = chamfer(net(codes[b]), surf[b]).mean()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        ms = 1000 * (time.perf_counter() - t) / steps
+        with torch.no_grad():
+            pred = net(codes)
+            cds = []
+            for p, g, s in zip(pred, surf, scales):
+                d_pg, _ = cKDTree(g.numpy()).query(p.numpy())
+                d_gp, _ = cKDTree(p.numpy()).query(g.numpy())
+                cds.append(50 * float(s) * (d_pg.mean() + d_gp.mean()))
+        out[v] = {'parameters': sum(p.numel() for p in net.parameters()), 'ms_per_step': ms,
+                  'cd_cm_median': float(np.median(cds)), 'cd_cm_mean': float(np.mean(cds)), 'steps': steps,
+                  'batch': batch}
+    return out
+
+
 def machine() -> str:
     """One line naming the machine the numbers were measured on."""
     cpu = platform.processor() or platform.machine()
@@ -188,6 +274,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--threads', type=int, default=2)
     ap.add_argument('--cache', default=None, help='SDF sample cache folder')
     ap.add_argument('--out', default=None, help='write the results as JSON here')
+    ap.add_argument('--figure', default=None, help='save a CAD-retrieval figure (PNG) here')
+    ap.add_argument('--point-variants', nargs='*', default=None,
+                    help="compare point-decoder variants fitted to the training codes (e.g. small paper)")
+    ap.add_argument('--point-steps', type=int, default=400)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     prior = ShapePrior.load(args.prior)
@@ -210,6 +300,11 @@ def main(argv: list[str] | None = None) -> int:
         results['heldout_single_view'] = {'summary': _summary(rows), 'per_class': {
             c: _summary([r for r in rows if r['class'] == c]) for c in prior.class_names}, 'rows': rows}
         print('held-out single view', json.dumps(results['heldout_single_view']['summary']), flush=True)
+    if args.point_variants:
+        results['point_decoder_variants'] = compare_point_decoders(prior, args.point_variants, args.point_steps)
+        print('point decoder variants', json.dumps(results['point_decoder_variants']), flush=True)
+    if args.figure and prior.encoder is not None:
+        retrieval_figure(prior, held, args.figure)
     results['seconds'] = time.time() - t
     if args.out:
         Path(args.out).write_text(json.dumps(results, indent=1))
