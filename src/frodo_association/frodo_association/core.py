@@ -1,0 +1,831 @@
+"""Data association (paper Sec. 4.1 and supplement "DP-mean based Line Segment Clustering", Algorithm 1;
+"Detection Pruning"): ray segments, incremental DP-means over segments, a 3D box per object and detection
+pruning (numpy/scipy, no ROS).
+
+Observation. The ray through a detection's 2D box centre points at the object centre. An object of metric
+size S at optical depth d spans about f*S/d pixels, so a box whose larger side spans `a` in normalised image
+units (a = max(w/fx, h/fy)) puts the object at d = S / a. The class size range [S_min, S_max]
+(`frodo_common.categories`) turns this into a depth interval [S_min / a, S_max / a], widened by
+`depth_margin` on both sides (foreshortening, diagonals seen in the box, imperfect masks) and clamped to
+[min_depth, max_depth]. The ray cut to that interval is the 3D segment the object centre lies on.
+
+Clustering. DP-means with segments as observations and 3D points as centres (Algorithm 1): the distance of
+a segment to a centre is the point-to-segment distance; a segment farther than the cluster penalty
+lambda from every centre of its class opens a new cluster at its midpoint; a centre is the point
+minimising the sum of squared distances to its member segments (`lsq_center`). It runs incrementally:
+each frame's segments are matched to the centres of their class by a Hungarian assignment gated by
+lambda, because a frame sees an object at most once; centres of the touched clusters are re-estimated;
+every `full_pass_every` frames a full EM pass re-assigns every segment until the assignment is stable.
+Ids are never reused and never renumbered: a cluster keeps its id until it is merged away (two centres of
+one class closer than `merge_distance`; the older id survives) or emptied by a full pass.
+Same-frame duplicates: when a merge or a full pass puts two detections of one frame on one object, the one
+nearer the centre keeps it and the other is ignored (object id -1); a segment within lambda of a centre
+that a closer detection of its frame already holds is ignored rather than opening a cluster (it is a
+split mask or a duplicate detection). A cluster becomes a published object ("confirmed") once it has
+`min_track_views` detections; until then its detections carry object id -1.
+
+Boxes. Each confirmed object gets an upright 3D box (centre, size (dx, dy, dz), yaw about gravity z), in
+the spirit of QuadricSLAM's boxes from 2D detections: initialised at the cluster centre with the class
+size prior and refined with scipy `least_squares` (soft-L1) so that the projected box corners match the
+2D detection boxes, edge by edge (edges at the image border are truncated and left out); objects stand on
+the floor plane z = floor_height when `objects_on_floor`. Boxes are refitted when an object has grown by
+`box_refit_growth` since its last fit.
+
+Pruning (supplement "Detection Pruning"): a detection is kept when (1) its box is at least
+min_box_width x min_box_height pixels, (2) the IoU between it and the projection of its object's 3D box
+(clipped to the image) is at least `occlusion_iou` (occlusion or truncation otherwise), and (3) its IoU
+with the projected box of every other object in view is at most `overlap_iou`.
+
+Conventions: boxes (x0, y0, x1, y1) in pixel-edge coordinates (pixel (u, v) is the centre of column u, row
+v); world frame gravity aligned, z up; `T_world_camera` is the camera pose (optical frame).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+from scipy.optimize import least_squares, linear_sum_assignment
+
+from frodo_common.categories import category_by_id
+from frodo_common.geometry import invert_transform, yaw_matrix
+from frodo_detection.core import instance_boxes
+
+ASSOCIATION_DTYPE = np.dtype([('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('label', '<u2'), ('object_id', '<i4'),
+                              ('kept', 'u1'), ('bbox', '<f4', (4,))])
+"""Row of /frodo/associations (docs/ARCHITECTURE.md): object centre (world; NaN when not associated), the
+detection's instance label, object id (-1: not associated), kept (passed pruning), box (x0, y0, x1, y1)."""
+
+_BOX_SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64) / 2
+
+
+@dataclass(frozen=True)
+class AssociationConfig:
+    """Association parameters; `CONFIG_DOC` describes each (the node's ROS parameters are generated from both)."""
+
+    cluster_penalty: float = 0.4
+    merge_distance: float = 0.25
+    full_pass_every: int = 20
+    max_em_iterations: int = 10
+    depth_margin: float = 0.3
+    min_depth: float = 0.3
+    max_depth: float = 20.0
+    center_prior_weight: float = 1e-3
+    min_track_views: int = 3
+    min_hit_ratio: float = 0.4
+    drop_hit_ratio: float = 0.2
+    truncated_opens_clusters: bool = False
+    objects_on_floor: bool = True
+    floor_height: float = 0.0
+    size_prior_weight: float = 0.05
+    center_anchor_weight: float = 1.0
+    box_refit_growth: float = 1.25
+    box_max_views: int = 24
+    max_box_fits_per_frame: int = 1
+    prune: bool = True
+    min_box_width: float = 24.0
+    min_box_height: float = 24.0
+    occlusion_iou: float = 0.5
+    overlap_iou: float = 0.4
+    border_margin: float = 2.0
+
+
+CONFIG_DOC: dict[str, str] = {
+    'cluster_penalty': 'DP-means cluster penalty lambda (m): a segment farther than this from every centre of its '
+                       'class opens a new cluster (paper: 0.4).',
+    'merge_distance': 'Clusters of one class whose centres come closer than this (m) are merged; the older id survives.',
+    'full_pass_every': 'Frames between full DP-means EM passes over all segments (0: never).',
+    'max_em_iterations': 'Maximum EM iterations of a full pass.',
+    'depth_margin': 'Relative widening of the depth interval [S_min/a, S_max/a] of a detection segment.',
+    'min_depth': 'Segments start no closer than this (m, optical depth).',
+    'max_depth': 'Segments end no farther than this (m, optical depth).',
+    'center_prior_weight': 'Weight (per segment) pulling a cluster centre towards the mean segment midpoint; '
+                           'regularises near-parallel segments.',
+    'min_track_views': 'Detections a cluster needs before it is published as an object.',
+    'min_hit_ratio': 'A cluster is published once it was detected in at least this fraction of the frames whose '
+                     'image contains its centre (since its first detection).',
+    'drop_hit_ratio': 'A published cluster whose hit ratio falls below this (checked at full passes) is withdrawn.',
+    'truncated_opens_clusters': 'Let detections touching the image border open new clusters and count towards '
+                                'publishing one (their box centre and size are biased).',
+    'objects_on_floor': 'Boxes stand on the plane z = floor_height (gravity-aligned world).',
+    'floor_height': 'Height of the support plane (m) when objects_on_floor.',
+    'size_prior_weight': 'Weight of the class size prior (log-size residual) in the box fit.',
+    'center_anchor_weight': 'Weight (per metre) pulling the box centre towards the cluster centre in the box fit '
+                            '(resolves the depth ambiguity of few or similar views).',
+    'box_refit_growth': 'An object box is refitted when its detection count grew by this factor since the last fit.',
+    'box_max_views': 'Detections used per box fit (evenly spread over the object\'s detections).',
+    'max_box_fits_per_frame': 'Box fits per processed frame at most (bounds the per-frame latency).',
+    'prune': 'Apply detection pruning (size, occlusion, overlap); off: every associated detection is kept.',
+    'min_box_width': 'Pruning (1): detections narrower than this (pixels) are rejected.',
+    'min_box_height': 'Pruning (1): detections lower than this (pixels) are rejected.',
+    'occlusion_iou': 'Pruning (2): detections whose IoU with their object\'s projected 3D box is below this are '
+                     'rejected (occluded or truncated).',
+    'overlap_iou': 'Pruning (3): detections whose IoU with another object\'s projected 3D box is above this are '
+                   'rejected.',
+    'border_margin': 'A box edge within this many pixels of the image border is truncated (not used in box fits).',
+}
+assert set(CONFIG_DOC) == {f.name for f in fields(AssociationConfig)}
+
+
+# ---------------------------------------------------------------- segments and distances
+def depth_intervals(boxes: np.ndarray, K: np.ndarray, size_ranges: np.ndarray, margin: float,
+                    min_depth: float, max_depth: float) -> np.ndarray:
+    """Optical-depth interval of each detection's object centre.
+
+    boxes: (N, 4) pixel boxes; K: (3, 3); size_ranges: (N, 2) metric (S_min, S_max) per detection.
+    Returns (N, 2) (d_min, d_max) with d = S / max(w / fx, h / fy), widened by `margin`, clamped.
+    """
+    a = np.maximum((boxes[:, 2] - boxes[:, 0]) / K[0, 0], (boxes[:, 3] - boxes[:, 1]) / K[1, 1])
+    a = np.maximum(a, 1e-6)
+    d = size_ranges / a[:, None] * np.array([1.0 - margin, 1.0 + margin])
+    return np.clip(d, min_depth, max_depth)
+
+
+def box_segments(boxes: np.ndarray, K: np.ndarray, T_world_camera: np.ndarray, size_ranges: np.ndarray,
+                 margin: float = 0.3, min_depth: float = 0.3, max_depth: float = 20.0) -> np.ndarray:
+    """World segments (N, 2, 3) (start, end) on the rays through the box centres, cut to the depth intervals.
+
+    boxes: (N, 4); K: (3, 3); T_world_camera: (4, 4); size_ranges: (N, 2).
+    """
+    centres = np.stack([(boxes[:, 0] + boxes[:, 2]) / 2, (boxes[:, 1] + boxes[:, 3]) / 2], axis=1)
+    d_cam = np.stack([(centres[:, 0] - K[0, 2]) / K[0, 0], (centres[:, 1] - K[1, 2]) / K[1, 1],
+                      np.ones(len(centres))], axis=1)      # z = 1: a point at optical depth d is d * d_cam
+    depth = depth_intervals(boxes, K, size_ranges, margin, min_depth, max_depth)
+    pts_cam = d_cam[:, None, :] * depth[:, :, None]        # (N, 2, 3)
+    return pts_cam @ T_world_camera[:3, :3].T + T_world_camera[:3, 3]
+
+
+def point_segment_distance(points: np.ndarray, segments: np.ndarray) -> np.ndarray:
+    """Distances (N, M) between segments (N, 2, 3) and points (M, 3)."""
+    a = segments[:, 0][:, None, :]
+    ab = (segments[:, 1] - segments[:, 0])[:, None, :]
+    denom = np.maximum(np.sum(ab * ab, axis=2), 1e-12)
+    t = np.clip(np.sum((points[None] - a) * ab, axis=2) / denom, 0.0, 1.0)
+    return np.linalg.norm(points[None] - (a + t[..., None] * ab), axis=2)
+
+
+def lsq_center(segments: np.ndarray, prior_weight: float = 1e-3, max_iter: int = 10) -> np.ndarray:
+    """Point (3,) minimising the sum of squared distances to segments (N, 2, 3).
+
+    Active-set least squares: a segment whose closest point is interior acts as its infinite line
+    (residual projector I - u u^T), one whose closest point is an end acts as that end point (projector I);
+    solve the 3x3 normal equations, update the active set, repeat until it is stable. A weak pull
+    (`prior_weight` per segment) towards the mean midpoint fixes the position along near-parallel
+    segments, and gives the midpoint for a single segment.
+    """
+    a, b = segments[:, 0], segments[:, 1]
+    ab = b - a
+    length2 = np.maximum(np.sum(ab * ab, axis=1), 1e-12)
+    u = ab / np.sqrt(length2)[:, None]
+    m = 0.5 * (a + b).mean(axis=0)
+    line_q = np.eye(3)[None] - u[:, :, None] * u[:, None, :]          # (N, 3, 3)
+    w = prior_weight * len(segments)
+    x = None
+    state = np.zeros(len(segments), dtype=np.int8)                    # 0 interior, -1 start, 1 end
+    for _ in range(max_iter):
+        interior = state == 0
+        anchor = np.where((state == 1)[:, None], b, a)
+        q = np.where(interior[:, None, None], line_q, np.eye(3)[None])
+        A = q.sum(axis=0) + w * np.eye(3)
+        rhs = np.einsum('nij,nj->i', q, anchor) + w * m
+        x = np.linalg.solve(A, rhs)
+        t = np.sum((x - a) * ab, axis=1) / length2
+        new_state = np.where(t <= 0.0, -1, np.where(t >= 1.0, 1, 0)).astype(np.int8)
+        if np.array_equal(new_state, state):
+            break
+        state = new_state
+    return x
+
+
+def gated_assignment(cost: np.ndarray, gate: float) -> np.ndarray:
+    """One-to-one assignment of rows to columns with cost < gate (Hungarian); (R,) column index or -1."""
+    out = np.full(cost.shape[0], -1, dtype=np.int64)
+    if cost.size == 0:
+        return out
+    big = 1e6
+    rows, cols = linear_sum_assignment(np.where(cost < gate, cost, big))
+    ok = cost[rows, cols] < gate
+    out[rows[ok]] = cols[ok]
+    return out
+
+
+# ---------------------------------------------------------------- boxes and pruning
+def project_boxes(K: np.ndarray, T_camera_world: np.ndarray, corners: np.ndarray,
+                  near: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """2D boxes (not clipped to the image) of 3D boxes seen by F cameras.
+
+    K: (F, 3, 3); T_camera_world: (F, 4, 4); corners: (O, 8, 3) world corners. Returns (boxes (F, O, 4),
+    valid (F, O)): a box is invalid when a corner is closer than `near` (the object reaches behind the camera).
+    """
+    pc = np.einsum('fij,okj->foki', T_camera_world[:, :3, :3], corners) + T_camera_world[:, None, None, :3, 3]
+    z = pc[..., 2]
+    zs = np.maximum(z, near)
+    u = K[:, None, None, 0, 0] * pc[..., 0] / zs + K[:, None, None, 0, 2]
+    v = K[:, None, None, 1, 1] * pc[..., 1] / zs + K[:, None, None, 1, 2]
+    boxes = np.stack([u.min(2), v.min(2), u.max(2), v.max(2)], axis=-1)
+    return boxes, np.all(z > near, axis=2)
+
+
+def clip_boxes(boxes: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """Boxes (..., O, 4) clipped to images of sizes (..., 2) (width, height)."""
+    lim = np.concatenate([sizes, sizes], axis=-1)[..., None, :] - 0.5
+    return np.clip(boxes, -0.5, lim)
+
+
+def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """IoU of boxes a (..., 4) and b (..., 4), broadcast over the leading axes."""
+    ix = np.clip(np.minimum(a[..., 2], b[..., 2]) - np.maximum(a[..., 0], b[..., 0]), 0, None)
+    iy = np.clip(np.minimum(a[..., 3], b[..., 3]) - np.maximum(a[..., 1], b[..., 1]), 0, None)
+    inter = ix * iy
+    union = (a[..., 2] - a[..., 0]) * (a[..., 3] - a[..., 1]) + (b[..., 2] - b[..., 0]) * (b[..., 3] - b[..., 1]) - inter
+    return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
+
+
+def upright_box_corners(center: np.ndarray, size: np.ndarray, yaw: float) -> np.ndarray:
+    """Corners (8, 3) of an upright box (same order as frodo_common.geometry.box_corners)."""
+    return (_BOX_SIGNS * size) @ yaw_matrix(yaw).T + center
+
+
+@dataclass
+class Box3D:
+    """Upright box: centre (3,), size (dx, dy, dz) (3,), yaw about z in [-pi/4, pi/4)."""
+
+    center: np.ndarray
+    size: np.ndarray
+    yaw: float
+
+    def corners(self) -> np.ndarray:
+        """(8, 3) world corners."""
+        return upright_box_corners(self.center, self.size, self.yaw)
+
+
+def canonical_yaw(size: np.ndarray, yaw: float) -> tuple[np.ndarray, float]:
+    """Equivalent (size, yaw) with yaw in [-pi/4, pi/4): a quarter turn swaps dx and dy."""
+    size = np.asarray(size, dtype=np.float64).copy()
+    quarter = int(np.floor((yaw + np.pi / 4) / (np.pi / 2)))
+    yaw = yaw - quarter * np.pi / 2
+    if quarter % 2:
+        size[[0, 1]] = size[[1, 0]]
+    return size, float(yaw)
+
+
+def _box_projection(p: np.ndarray, R: np.ndarray, t: np.ndarray, f: np.ndarray, c: np.ndarray,
+                    floor_height: float | None, with_jacobian: bool = False):
+    """Projected 2D boxes of an upright 3D box (and their Jacobian w.r.t. the box parameters).
+
+    p: (P,) = (cx, cy, [cz], log dx, log dy, log dz, yaw) (cz omitted when the box stands on floor_height);
+    R: (V, 3, 3), t: (V, 3) camera-from-world; f, c: (V, 2) focal lengths and principal points.
+    Returns boxes (V, 4) = (min u, min v, max u, max v) over the 8 corners, or (boxes, jacobian (V, 4, P))
+    with `with_jacobian` (each edge follows its extreme corner).
+    """
+    on_floor = floor_height is not None
+    size = np.exp(p[-4:-1])
+    yaw = p[-1]
+    center = np.array([p[0], p[1], floor_height + size[2] / 2 if on_floor else p[2]])
+    cos, sin = np.cos(yaw), np.sin(yaw)
+    rot = np.array([[cos, -sin, 0.0], [sin, cos, 0.0], [0.0, 0.0, 1.0]])
+    local = _BOX_SIGNS * size                                           # (8, 3)
+    pc = np.einsum('vij,kj->vki', R, local @ rot.T + center) + t[:, None, :]   # (V, 8, 3)
+    z = np.maximum(pc[..., 2], 0.05)
+    xy = pc[..., :2] / z[..., None]
+    uv = xy * f[:, None, :] + c[:, None, :]                             # (V, 8, 2)
+    lo = np.argmin(uv, axis=1)                                          # (V, 2) extreme corner per axis
+    hi = np.argmax(uv, axis=1)
+    v_idx = np.arange(len(R))[:, None]
+    axis = np.arange(2)[None, :]
+    boxes = np.concatenate([uv[v_idx, lo, axis], uv[v_idx, hi, axis]], axis=1)
+    if not with_jacobian:
+        return boxes
+    n_c = 2 if on_floor else 3
+    dX = np.zeros((8, 3, len(p)))                                       # d corner / d p
+    dX[:, np.arange(n_c), np.arange(n_c)] = 1.0
+    dX[:, :, n_c:n_c + 3] = rot[None, :, :] * local[:, None, :]
+    if on_floor:
+        dX[:, 2, n_c + 2] += size[2] / 2
+    dX[:, :, -1] = local @ np.array([[-sin, -cos, 0.0], [cos, -sin, 0.0], [0.0, 0.0, 0.0]]).T
+    corner = np.concatenate([lo, hi], axis=1)                           # (V, 4)
+    comp = np.array([0, 1, 0, 1])
+    dP = np.einsum('vij,vejp->veip', R, dX[corner])                     # (V, 4, 3, P)
+    xy_e = xy[np.arange(len(R))[:, None], corner, comp[None, :]]        # (V, 4)
+    z_e = z[np.arange(len(R))[:, None], corner]
+    f_e = f[:, comp]
+    dP_c = np.take_along_axis(dP, comp[None, :, None, None].repeat(len(R), 0), axis=2)[:, :, 0]
+    jac = (dP_c - xy_e[..., None] * dP[:, :, 2]) * (f_e / z_e)[..., None]
+    return boxes, jac
+
+
+def fit_box(K: np.ndarray, T_camera_world: np.ndarray, boxes: np.ndarray, edge_valid: np.ndarray,
+            size_range: tuple[float, float], init_center: np.ndarray, floor_height: float | None = None,
+            size_prior_weight: float = 0.05, anchor_weight: float = 1.0, init: Box3D | None = None) -> Box3D:
+    """Upright 3D box whose projection matches 2D detection boxes over several views.
+
+    K: (V, 3, 3); T_camera_world: (V, 4, 4); boxes: (V, 4) detection boxes; edge_valid: (V, 4) bool, False
+    for truncated edges; size_range: the class's (S_min, S_max); init_center: (3,) (the cluster centre);
+    floor_height: the box bottom is fixed at this z when given; init: a previous box to start from.
+    Residuals: per valid edge, (projected box edge - detection edge) / detection box diagonal, soft-L1
+    loss; plus size_prior_weight * log(size / prior) per dimension with prior = sqrt(S_min * S_max), and
+    anchor_weight * (centre - init_center) (metres) per free centre coordinate.
+    Analytic Jacobian (the extreme corner of each edge). Yaw starts at 0 and pi/4 (a box is symmetric
+    under quarter turns) unless `init` is given.
+    """
+    prior = np.full(3, np.sqrt(size_range[0] * size_range[1]))
+    diag = np.maximum(np.hypot(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]), 1.0)
+    R = T_camera_world[:, :3, :3]
+    t = T_camera_world[:, :3, 3]
+    f = np.stack([K[:, 0, 0], K[:, 1, 1]], axis=1)
+    c = np.stack([K[:, 0, 2], K[:, 1, 2]], axis=1)
+    on_floor = floor_height is not None
+    n_center = 2 if on_floor else 3
+    prior_jac = np.zeros((3 + n_center, n_center + 4))
+    prior_jac[:3, n_center:n_center + 3] = size_prior_weight * np.eye(3)
+    prior_jac[3:, :n_center] = anchor_weight * np.eye(n_center)
+    anchor = np.asarray(init_center, dtype=np.float64)[:n_center]
+
+    def residuals(p):
+        proj = _box_projection(p, R, t, f, c, floor_height)
+        r = ((proj - boxes) / diag[:, None])[edge_valid]
+        return np.concatenate([r, size_prior_weight * (p[n_center:n_center + 3] - np.log(prior)),
+                               anchor_weight * (p[:n_center] - anchor)])
+
+    def jacobian(p):
+        _, jac = _box_projection(p, R, t, f, c, floor_height, with_jacobian=True)
+        return np.concatenate([(jac / diag[:, None, None])[edge_valid], prior_jac])
+
+    lo_size, hi_size = np.log(0.05), np.log(size_range[1] * 1.2)
+    lower = np.concatenate([np.full(n_center, -np.inf), np.full(3, lo_size), [-np.inf]])
+    upper = np.concatenate([np.full(n_center, np.inf), np.full(3, hi_size), [np.inf]])
+    clip = (np.log(0.06), np.log(size_range[1] * 1.15))
+    if init is not None:
+        starts = [np.concatenate([init.center[:n_center], np.clip(np.log(init.size), *clip), [init.yaw]])]
+    else:
+        starts = [np.concatenate([init_center[:n_center], np.clip(np.log(prior), *clip), [yaw]])
+                  for yaw in (0.0, np.pi / 4)]
+    best = None
+    for p0 in starts:
+        sol = least_squares(residuals, p0, jac=jacobian, bounds=(lower, upper), loss='soft_l1', f_scale=0.05,
+                            max_nfev=50, x_scale='jac')
+        if best is None or sol.cost < best.cost:
+            best = sol
+    size = np.exp(best.x[n_center:n_center + 3])
+    center = np.array([best.x[0], best.x[1], floor_height + size[2] / 2 if on_floor else best.x[2]])
+    size, yaw = canonical_yaw(size, float(best.x[-1]))
+    return Box3D(center, size, yaw)
+
+
+def prune_detections(det_boxes: np.ndarray, object_index: np.ndarray, object_boxes: np.ndarray,
+                     object_valid: np.ndarray, image_sizes: np.ndarray, cfg: AssociationConfig) -> np.ndarray:
+    """Detection pruning (supplement "Detection Pruning").
+
+    det_boxes: (N, 4) detection boxes; object_index: (N,) column of each detection's own object in
+    object_boxes (-1: no object or no 3D box yet: only the size test applies); object_boxes: (N, O, 4) the
+    projected 3D boxes (not clipped) of the O objects, in each detection's frame; object_valid: (N, O)
+    projection usable; image_sizes: (N, 2) (width, height) of each detection's image.
+    (1) size: width >= min_box_width and height >= min_box_height;
+    (2) occlusion: IoU(detection, own projected box) >= occlusion_iou; the projection is not clipped, so a
+        detection truncated by the image border fails this test too (the paper's "occlusions or truncations");
+    (3) overlap: IoU(detection, other object's projected box clipped to the image) <= overlap_iou.
+    Returns kept (N,) bool.
+    """
+    w = det_boxes[:, 2] - det_boxes[:, 0]
+    h = det_boxes[:, 3] - det_boxes[:, 1]
+    kept = (w >= cfg.min_box_width) & (h >= cfg.min_box_height)
+    if object_boxes.shape[1] == 0:
+        return kept
+    rows = np.arange(len(det_boxes))
+    own = object_index >= 0
+    col = np.maximum(object_index, 0)
+    own_iou = box_iou(det_boxes, object_boxes[rows, col])
+    own_ok = object_valid[rows, col] & (own_iou >= cfg.occlusion_iou)
+    other = np.where(object_valid, box_iou(det_boxes[:, None, :], clip_boxes(object_boxes, image_sizes)), 0.0)
+    other[rows[own], col[own]] = 0.0
+    return kept & (~own | own_ok) & (other.max(axis=1) <= cfg.overlap_iou)
+
+
+# ---------------------------------------------------------------- incremental association
+@dataclass
+class ObjectTrack:
+    """One cluster: id, class, centre (3,), published ("confirmed") or not, 3D box (None until fitted) and
+    its detection count at the last box fit."""
+
+    object_id: int
+    coco_id: int
+    center: np.ndarray
+    confirmed: bool = False
+    box: Box3D | None = None
+    fitted_views: int = 0
+
+
+@dataclass
+class AssociationUpdate:
+    """What one `add_frame` or `refine_boxes` call changed.
+
+    stamp / table: the new frame and its rows (ASSOCIATION_DTYPE) (`add_frame` only; None otherwise);
+    republish: stamps of earlier frames whose rows (object ids or kept flags) changed, oldest first;
+    removed: {object id no longer published: id it was merged into, or -1};
+    tracks_changed: an object's box or existence changed (re-send the tracks); fitted: ids whose box was fitted.
+    """
+
+    stamp: int | None = None
+    table: np.ndarray | None = None
+    republish: list[int] = field(default_factory=list)
+    removed: dict[int, int] = field(default_factory=dict)
+    tracks_changed: bool = False
+    fitted: list[int] = field(default_factory=list)
+
+
+class _Table:
+    """Named columns (numpy arrays sharing the first axis) with amortised O(1) append."""
+
+    def __init__(self, **columns: tuple[tuple[int, ...], type, object]):
+        self.n = 0
+        self._fill = {name: fill for name, (_, _, fill) in columns.items()}
+        self._cols = {name: np.full((16,) + shape, fill, dtype) for name, (shape, dtype, fill) in columns.items()}
+
+    def append(self, **values) -> slice:
+        """Append k rows (every column given, first axis k); returns their slice."""
+        k = len(next(iter(values.values())))
+        cap = len(next(iter(self._cols.values())))
+        if self.n + k > cap:
+            for name, arr in self._cols.items():
+                grown = np.full((max(2 * cap, self.n + k),) + arr.shape[1:], self._fill[name], arr.dtype)
+                grown[:self.n] = arr[:self.n]
+                self._cols[name] = grown
+        for name, arr in values.items():
+            self._cols[name][self.n:self.n + k] = arr
+        self.n += k
+        return slice(self.n - k, self.n)
+
+    def __getattr__(self, name: str) -> np.ndarray:
+        cols = self.__dict__.get('_cols')
+        if cols is None or name not in cols:
+            raise AttributeError(name)
+        return cols[name][:self.n]
+
+    def __len__(self) -> int:
+        return self.n
+
+
+class Associator:
+    """Incremental DP-means association of per-frame detections into objects with 3D boxes and pruning.
+
+    `add_frame` per frame (fast: clustering, merges, pruning with the current boxes); `refine_boxes`
+    after it (box fits, bounded per call). Detections are rows of `self.rows` (segment, box, label, class,
+    frame, cluster `assign`, `kept`), frames rows of `self.frames` (stamp, K, poses, size, row range).
+    """
+
+    def __init__(self, cfg: AssociationConfig | None = None):
+        self.cfg = cfg or AssociationConfig()
+        self.rows = _Table(segment=((2, 3), np.float64, 0.0), box=((4,), np.float64, 0.0),
+                           edge_valid=((4,), bool, False), label=((), np.int64, 0), coco=((), np.int64, 0),
+                           frame=((), np.int64, 0), assign=((), np.int64, -1), kept=((), bool, False),
+                           valid=((), bool, False), reliable=((), bool, False))
+        self.frames = _Table(stamp=((), np.int64, 0), K=((3, 3), np.float64, 0.0),
+                             T_world_camera=((4, 4), np.float64, 0.0), T_camera_world=((4, 4), np.float64, 0.0),
+                             size=((2,), np.float64, 0.0), start=((), np.int64, 0), stop=((), np.int64, 0))
+        self.frame_index: dict[int, int] = {}
+        self.tracks: dict[int, ObjectTrack] = {}
+        self.next_id = 0
+        self.published: dict[int, tuple[np.ndarray, np.ndarray]] = {}   # stamp -> (object ids, kept) sent
+        self.merges = 0
+
+    # ------------------------------------------------------------ public API
+    def add_frame(self, stamp: int, K: np.ndarray, T_world_camera: np.ndarray, size: tuple[int, int],
+                  labels: np.ndarray, boxes: np.ndarray) -> AssociationUpdate:
+        """Associate one frame's detections (clustering, merges, confirmation, pruning with the current boxes).
+
+        stamp: frame stamp (ns); K: (3, 3); T_world_camera: (4, 4); size: image (width, height);
+        labels: (N,) contract instance labels; boxes: (N, 4) detection boxes. A stamp seen before is
+        ignored (its current rows are returned). Box fits are left to `refine_boxes`.
+        """
+        if stamp in self.frame_index:
+            return AssociationUpdate(stamp, self.frame_table(stamp))
+        cfg = self.cfg
+        labels = np.asarray(labels, dtype=np.int64).reshape(-1)
+        boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+        K = np.asarray(K, dtype=np.float64)
+        T_world_camera = np.asarray(T_world_camera, dtype=np.float64)
+        coco = labels >> 8
+        cats = [category_by_id(c) for c in coco]
+        valid = np.array([c is not None for c in cats], dtype=bool) & np.all(np.isfinite(boxes), axis=1) \
+            & (boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1])
+        size_ranges = np.array([c.size_range if c is not None else (1.0, 1.0) for c in cats]).reshape(-1, 2)
+        segments = box_segments(boxes, K, T_world_camera, size_ranges, cfg.depth_margin, cfg.min_depth,
+                                cfg.max_depth)
+        w, h = size
+        m = cfg.border_margin
+        edge_valid = np.stack([boxes[:, 0] > m - 0.5, boxes[:, 1] > m - 0.5,
+                               boxes[:, 2] < w - 0.5 - m, boxes[:, 3] < h - 0.5 - m], axis=1)
+        fi = len(self.frames)
+        rows = self.rows.append(segment=segments, box=boxes, edge_valid=edge_valid, label=labels, coco=coco,
+                                frame=np.full(len(labels), fi), assign=np.full(len(labels), -1),
+                                kept=np.zeros(len(labels), bool), valid=valid,
+                                reliable=valid & (cfg.truncated_opens_clusters | edge_valid.all(axis=1))
+                                & (boxes[:, 2] - boxes[:, 0] >= cfg.min_box_width)
+                                & (boxes[:, 3] - boxes[:, 1] >= cfg.min_box_height))
+        self.frames.append(stamp=[stamp], K=K[None], T_world_camera=T_world_camera[None],
+                           T_camera_world=invert_transform(T_world_camera)[None], size=[(w, h)],
+                           start=[rows.start], stop=[rows.stop])
+        self.frame_index[stamp] = fi
+        self._update_centers(self._assign_frame(rows))
+        dirty: set[int] = set()
+        removed: dict[int, int] = {}
+        full = cfg.full_pass_every > 0 and len(self.frames) % cfg.full_pass_every == 0
+        if full:
+            changed, gone = self.full_pass()
+            dirty |= changed
+            removed.update(gone)
+        merged, merge_frames = self.merge_close()
+        removed.update(merged)
+        confirm_frames, dropped = self._update_confirmation(recheck=full)
+        removed.update(dropped)
+        dirty |= merge_frames | confirm_frames
+        dirty.discard(fi)
+        self._prune_frames(sorted(dirty | {fi}))
+        table = self.frame_table(stamp)
+        self.published[stamp] = (table['object_id'].copy(), table['kept'].astype(bool))
+        removed = {k: v for k, v in removed.items() if not (k in self.tracks and self.tracks[k].confirmed)}
+        return AssociationUpdate(stamp, table, self._changed_stamps(dirty), removed, bool(removed))
+
+    def refine_boxes(self, max_fits: int | None = None) -> AssociationUpdate:
+        """Fit the boxes of the objects that grew most since their last fit (at most `max_fits`, default
+        max_box_fits_per_frame; objects without a box first) and re-prune their frames."""
+        cfg = self.cfg
+        limit = cfg.max_box_fits_per_frame if max_fits is None else max_fits
+        counts = np.bincount(self.rows.assign[self.rows.assign >= 0], minlength=self.next_id)
+        due = []
+        for t in self.confirmed_tracks():
+            n = int(counts[t.object_id])
+            if t.box is None or n >= max(t.fitted_views + 1, np.ceil(t.fitted_views * cfg.box_refit_growth)):
+                due.append((t.box is not None, -n / max(t.fitted_views, 1), t.object_id, n))
+        fitted = []
+        for _, _, oid, n in sorted(due)[:limit]:
+            self.fit_object_box(oid)
+            self.tracks[oid].fitted_views = n
+            fitted.append(oid)
+        if not fitted:
+            return AssociationUpdate()
+        dirty = set(np.unique(self.rows.frame[np.isin(self.rows.assign, fitted)]).tolist())
+        self._prune_frames(sorted(dirty))
+        return AssociationUpdate(republish=self._changed_stamps(dirty), tracks_changed=True, fitted=fitted)
+
+    def frame_table(self, stamp: int) -> np.ndarray:
+        """Current rows (ASSOCIATION_DTYPE) of a processed frame."""
+        sl = self._frame_rows(self.frame_index[stamp])
+        ids, kept = self._row_ids(sl)
+        out = np.zeros(len(ids), dtype=ASSOCIATION_DTYPE)
+        out['label'] = self.rows.label[sl]
+        out['bbox'] = self.rows.box[sl]
+        centers = np.array([self.tracks[a].center if a >= 0 else (np.nan,) * 3 for a in ids]).reshape(-1, 3)
+        out['x'], out['y'], out['z'] = centers.T
+        out['object_id'] = ids
+        out['kept'] = kept
+        return out
+
+    def confirmed_tracks(self) -> list[ObjectTrack]:
+        """Published objects (confirmed clusters), by id."""
+        return [t for _, t in sorted(self.tracks.items()) if t.confirmed]
+
+    def members(self, object_id: int) -> np.ndarray:
+        """Row indices of a cluster's detections."""
+        return np.nonzero(self.rows.assign == object_id)[0]
+
+    # ------------------------------------------------------------ bookkeeping
+    def _frame_rows(self, fi: int) -> slice:
+        return slice(int(self.frames.start[fi]), int(self.frames.stop[fi]))
+
+    def _row_ids(self, rows: slice | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(published object ids (-1 unless assigned to a confirmed cluster), kept flags) of detection rows."""
+        assign = self.rows.assign[rows]
+        confirmed = np.zeros(self.next_id + 1, dtype=bool)
+        confirmed[[t.object_id for t in self.tracks.values() if t.confirmed]] = True
+        ids = np.where(confirmed[assign], assign, -1)
+        return ids, self.rows.kept[rows] & (ids >= 0)
+
+    def _changed_stamps(self, frame_indices: set[int]) -> list[int]:
+        """Stamps of the given frames whose rows differ from what was last published (and mark them sent)."""
+        out = []
+        for fi in sorted(frame_indices):
+            stamp = int(self.frames.stamp[fi])
+            ids, kept = self._row_ids(self._frame_rows(fi))
+            old = self.published.get(stamp)
+            if old is None or not (np.array_equal(old[0], ids) and np.array_equal(old[1], kept)):
+                self.published[stamp] = (ids, kept)
+                out.append(stamp)
+        return out
+
+    def _frames_of(self, object_ids) -> set[int]:
+        """Frame indices with a detection of any of the given clusters."""
+        return set(np.unique(self.rows.frame[np.isin(self.rows.assign, list(object_ids))]).tolist())
+
+    # ------------------------------------------------------------ clustering
+    def _new_track(self, row: int) -> int:
+        """Open a cluster at the midpoint of detection `row`'s segment."""
+        oid = self.next_id
+        self.next_id += 1
+        seg = self.rows.segment[row]
+        self.tracks[oid] = ObjectTrack(oid, int(self.rows.coco[row]), (seg[0] + seg[1]) / 2)
+        self.rows.assign[row] = oid
+        return oid
+
+    def _class_centers(self, coco: int) -> tuple[np.ndarray, np.ndarray]:
+        ids = np.array([t.object_id for t in self.tracks.values() if t.coco_id == coco], dtype=np.int64)
+        centers = np.array([self.tracks[i].center for i in ids]).reshape(-1, 3)
+        return ids, centers
+
+    def _assign_frame(self, rows: slice) -> set[int]:
+        """Assign one frame's detections (DP-means step with same-frame exclusivity); returns touched ids."""
+        touched: set[int] = set()
+        idx = np.arange(rows.start, rows.stop)[self.rows.valid[rows]]
+        for coco in np.unique(self.rows.coco[idx]):
+            sel = idx[self.rows.coco[idx] == coco]
+            ids, centers = self._class_centers(coco)
+            dist = point_segment_distance(centers, self.rows.segment[sel])
+            match = gated_assignment(dist, self.cfg.cluster_penalty)
+            self.rows.assign[sel[match >= 0]] = ids[match[match >= 0]]
+            touched.update(ids[match[match >= 0]].tolist())
+            far = (dist.min(axis=1) if dist.shape[1] else np.full(len(sel), np.inf)) >= self.cfg.cluster_penalty
+            for i in sel[(match < 0) & far & self.rows.reliable[sel]]:
+                self._new_track(int(i))
+        return touched
+
+    def _update_centers(self, ids) -> None:
+        for oid in ids:
+            members = self.members(oid)
+            if len(members):
+                self.tracks[oid].center = lsq_center(self.rows.segment[members], self.cfg.center_prior_weight)
+
+    def full_pass(self) -> tuple[set[int], dict[int, int]]:
+        """EM over all detections until the assignment is stable (at most max_em_iterations): nearest centre
+        within lambda with same-frame exclusivity, new clusters for segments beyond lambda of every centre,
+        centres re-estimated. Returns (frames whose assignment changed, {emptied cluster id: -1})."""
+        cfg = self.cfg
+        valid = np.nonzero(self.rows.valid)[0]
+        before = self.rows.assign.copy()
+        removed: dict[int, int] = {}
+        for _ in range(cfg.max_em_iterations):
+            ids = np.array(sorted(self.tracks), dtype=np.int64)
+            if len(ids) == 0:
+                break
+            centers = np.array([self.tracks[i].center for i in ids])
+            classes = np.array([self.tracks[i].coco_id for i in ids])
+            dist = point_segment_distance(centers, self.rows.segment[valid])
+            dist[self.rows.coco[valid][:, None] != classes[None, :]] = np.inf
+            best = np.argmin(dist, axis=1)
+            ok = dist[np.arange(len(valid)), best] < cfg.cluster_penalty
+            assign = np.where(ok, best, -1)
+            frames = self.rows.frame[valid]
+            key = frames * (len(ids) + 1) + np.where(ok, best, len(ids))
+            _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+            for f in np.unique(frames[ok & (counts[inv] > 1)]):       # same-frame clashes: Hungarian
+                rows_f = np.nonzero(frames == f)[0]
+                assign[rows_f] = gated_assignment(dist[rows_f], cfg.cluster_penalty)
+            new_assign = np.where(assign >= 0, ids[np.maximum(assign, 0)], -1)
+            changed = not np.array_equal(new_assign, self.rows.assign[valid])
+            self.rows.assign[valid] = new_assign
+            opened: list[int] = []
+            orphans = valid[(dist.min(axis=1) >= cfg.cluster_penalty) & self.rows.reliable[valid]]
+            for i in orphans:       # DP-means: open a cluster; orphans near it join on the next iteration
+                near = [o for o in opened if self.tracks[o].coco_id == self.rows.coco[i]]
+                if not near or point_segment_distance(np.array([self.tracks[o].center for o in near]),
+                                                      self.rows.segment[i][None]).min() >= cfg.cluster_penalty:
+                    opened.append(self._new_track(int(i)))
+                    changed = True
+            counts = np.bincount(self.rows.assign[self.rows.assign >= 0], minlength=self.next_id)
+            for oid in [o for o in self.tracks if counts[o] == 0]:
+                del self.tracks[oid]
+                removed[oid] = -1
+            self._update_centers(list(self.tracks))
+            if not changed:
+                break
+        diff = np.nonzero(before != self.rows.assign)[0]
+        return set(np.unique(self.rows.frame[diff]).tolist()), removed
+
+    def merge_close(self) -> tuple[dict[int, int], set[int]]:
+        """Merge same-class clusters closer than merge_distance (the older id survives); of two detections of
+        one frame on the merged cluster the one nearer its centre stays, the other is ignored (-1)."""
+        removed: dict[int, int] = {}
+        dirty: set[int] = set()
+        while len(self.tracks) > 1:
+            ids = np.array(sorted(self.tracks), dtype=np.int64)
+            centers = np.array([self.tracks[i].center for i in ids])
+            classes = np.array([self.tracks[i].coco_id for i in ids])
+            d = np.linalg.norm(centers[:, None] - centers[None], axis=2)
+            d[classes[:, None] != classes[None, :]] = np.inf
+            d[np.tril_indices(len(ids))] = np.inf
+            i, j = np.unravel_index(np.argmin(d), d.shape)
+            if d[i, j] >= self.cfg.merge_distance:
+                break
+            keep, gone = int(ids[i]), int(ids[j])          # ids ascend: ids[i] is the older
+            members = np.nonzero((self.rows.assign == keep) | (self.rows.assign == gone))[0]
+            center = lsq_center(self.rows.segment[members], self.cfg.center_prior_weight)
+            frames = self.rows.frame[members]
+            dist = point_segment_distance(center[None], self.rows.segment[members])[:, 0]
+            order = np.lexsort((dist, frames))
+            first = np.ones(len(order), bool)
+            first[1:] = frames[order][1:] != frames[order][:-1]
+            self.rows.assign[members] = keep
+            self.rows.assign[members[order[~first]]] = -1
+            survivor = self.tracks[keep]
+            survivor.confirmed = survivor.confirmed or self.tracks[gone].confirmed
+            survivor.fitted_views = 0                      # refit with the merged detections
+            del self.tracks[gone]
+            removed = {k: (keep if v == gone else v) for k, v in removed.items()}
+            removed[gone] = keep
+            self.merges += 1
+            self._update_centers([keep])
+            dirty |= set(np.unique(frames).tolist())
+        return removed, dirty
+
+    def hit_ratio(self, object_id: int) -> tuple[float, int]:
+        """(frames with a detection / frames whose image contains the cluster centre, frames in view),
+        counted from the cluster's first detection."""
+        t = self.tracks[object_id]
+        hit_frames = self.rows.frame[self.members(object_id)]
+        first = int(hit_frames.min())
+        fr = slice(first, len(self.frames))
+        pc = np.einsum('fij,j->fi', self.frames.T_camera_world[fr][:, :3, :3], t.center) \
+            + self.frames.T_camera_world[fr][:, :3, 3]
+        z = pc[:, 2]
+        K = self.frames.K[fr]
+        zs = np.maximum(z, 1e-6)
+        u = K[:, 0, 0] * pc[:, 0] / zs + K[:, 0, 2]
+        v = K[:, 1, 1] * pc[:, 1] / zs + K[:, 1, 2]
+        size = self.frames.size[fr]
+        in_view = (z > self.cfg.min_depth) & (u >= 0) & (v >= 0) & (u < size[:, 0]) & (v < size[:, 1])
+        hit = np.zeros(len(in_view), dtype=bool)
+        hit[hit_frames - first] = True
+        n_view = int(np.count_nonzero(in_view | hit))
+        return float(np.count_nonzero(hit)) / max(n_view, 1), n_view
+
+    def _update_confirmation(self, recheck: bool) -> tuple[set[int], dict[int, int]]:
+        """Confirm clusters with at least min_track_views reliable detections (not truncated, not too small:
+        those that may open clusters) and a hit ratio of at least
+        min_hit_ratio; with `recheck`, withdraw confirmed clusters whose hit ratio fell below drop_hit_ratio
+        (over at least 2 * min_track_views frames in view). Returns (frames whose rows change, withdrawn ids)."""
+        cfg = self.cfg
+        counts = np.bincount(self.rows.assign[(self.rows.assign >= 0) & self.rows.reliable], minlength=self.next_id)
+        changed: list[int] = []
+        withdrawn: dict[int, int] = {}
+        for t in self.tracks.values():
+            if not t.confirmed and counts[t.object_id] >= cfg.min_track_views:
+                if self.hit_ratio(t.object_id)[0] >= cfg.min_hit_ratio:
+                    t.confirmed = True
+                    changed.append(t.object_id)
+            elif t.confirmed and recheck:
+                ratio, n_view = self.hit_ratio(t.object_id)
+                if ratio < cfg.drop_hit_ratio and n_view >= 2 * cfg.min_track_views:
+                    t.confirmed = False
+                    changed.append(t.object_id)
+                    withdrawn[t.object_id] = -1
+        return (self._frames_of(changed) if changed else set()), withdrawn
+
+    # ------------------------------------------------------------ boxes and pruning
+    def fit_object_box(self, object_id: int) -> Box3D:
+        """Fit (or refit) an object's 3D box from its detections: the kept ones when pruning and they are at
+        least half of them (and min_track_views), else all of them."""
+        cfg = self.cfg
+        track = self.tracks[object_id]
+        members = self.members(object_id)
+        if cfg.prune and track.box is not None:
+            kept = members[self.rows.kept[members]]
+            if len(kept) >= max(cfg.min_track_views, len(members) / 2):
+                members = kept
+        if len(members) > cfg.box_max_views:
+            members = members[np.linspace(0, len(members) - 1, cfg.box_max_views).round().astype(int)]
+        frames = self.rows.frame[members]
+        edge_valid = self.rows.edge_valid[members]
+        if not edge_valid.any():
+            edge_valid = np.ones_like(edge_valid)
+        category = category_by_id(track.coco_id)
+        track.box = fit_box(self.frames.K[frames], self.frames.T_camera_world[frames], self.rows.box[members],
+                            edge_valid, category.size_range, track.center,
+                            cfg.floor_height if cfg.objects_on_floor else None, cfg.size_prior_weight,
+                            cfg.center_anchor_weight, track.box)
+        return track.box
+
+    def _prune_frames(self, frame_indices: list[int]) -> None:
+        """Recompute the kept flags of the detections of the given frames with the current boxes."""
+        if not frame_indices:
+            return
+        fis = np.asarray(frame_indices, dtype=np.int64)
+        starts, stops = self.frames.start[fis], self.frames.stop[fis]
+        rows = np.concatenate([np.arange(a, b) for a, b in zip(starts, stops)])
+        assign = self.rows.assign[rows]
+        if not self.cfg.prune:
+            self.rows.kept[rows] = assign >= 0
+            return
+        boxed = [t for t in self.confirmed_tracks() if t.box is not None]
+        corners = np.array([t.box.corners() for t in boxed]).reshape(-1, 8, 3)
+        proj, valid = project_boxes(self.frames.K[fis], self.frames.T_camera_world[fis], corners)
+        position = np.repeat(np.arange(len(fis)), stops - starts)
+        slot = np.full(self.next_id + 1, -1, np.int64)
+        slot[[t.object_id for t in boxed]] = np.arange(len(boxed))
+        index = np.where(assign >= 0, slot[assign], -1)
+        kept = prune_detections(self.rows.box[rows], index, proj[position], valid[position],
+                                self.frames.size[fis][position], self.cfg)
+        self.rows.kept[rows] = kept & (assign >= 0)
+
+
+def detections_from_instances(instances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(labels (N,), boxes (N, 4)) of the instances in a contract instance image (H, W) uint16."""
+    labels, boxes, _ = instance_boxes(instances)
+    return labels, boxes

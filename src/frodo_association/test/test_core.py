@@ -1,0 +1,190 @@
+"""Association core (paper Sec. 4.1, supplement Algorithm 1 and "Detection Pruning"): segments from boxes,
+DP-means over segments with stable ids, merges and same-frame exclusivity, box fitting and pruning."""
+import numpy as np
+import pytest
+
+from frodo_association.core import (AssociationConfig, Associator, Box3D, box_segments, depth_intervals,
+                                    detections_from_instances, fit_box, lsq_center, point_segment_distance,
+                                    project_boxes, prune_detections)
+from frodo_association.synthetic import make_scene
+from frodo_common.geometry import invert_transform, look_at, project_points
+
+CHAIR = 62
+K = np.array([[300.0, 0, 159.5], [0, 300.0, 119.5], [0, 0, 1]])
+SIZE = (320, 240)
+
+
+def _box_of(center, size, yaw, T_world_camera):
+    corners = Box3D(np.asarray(center, float), np.asarray(size, float), yaw).corners()
+    uv, _ = project_points(K, invert_transform(T_world_camera), corners)
+    return np.array([*uv.min(0), *uv.max(0)])
+
+
+def _run(scene, cfg=None):
+    assoc = Associator(cfg or AssociationConfig())
+    updates = []
+    for f in scene.frames:
+        labels, boxes = detections_from_instances(f.instances)
+        updates.append(assoc.add_frame(f.stamp, f.K, f.T_world_camera_observed, f.size, labels, boxes))
+        updates.append(assoc.refine_boxes())
+    return assoc, updates
+
+
+def _gt_of_rows(assoc, scene):
+    return np.array([scene.frames[f].gt.get(int(lab), -1) for f, lab in zip(assoc.rows.frame, assoc.rows.label)])
+
+
+def test_depth_interval_is_metric_size_over_angular_extent():
+    # A 0.8 m object spanning 80 px at f = 300 is 3 m away; the size range maps to a depth range.
+    boxes = np.array([[100.0, 50.0, 140.0, 130.0]])
+    d = depth_intervals(boxes, K, np.array([[0.8, 0.8]]), margin=0.0, min_depth=0.1, max_depth=50.0)
+    assert d[0] == pytest.approx([3.0, 3.0])
+    d = depth_intervals(boxes, K, np.array([[0.4, 1.2]]), margin=0.1, min_depth=0.1, max_depth=50.0)
+    assert d[0] == pytest.approx([1.5 * 0.9, 4.5 * 1.1])
+
+
+def test_segment_lies_on_the_box_centre_ray_at_the_interval_depths():
+    T = look_at([3.0, -2.0, 1.5], [0.0, 0.0, 0.5])
+    boxes = np.array([[100.0, 50.0, 140.0, 130.0], [10.0, 20.0, 60.0, 40.0]])
+    seg = box_segments(boxes, K, T, np.array([[0.4, 1.2], [0.5, 2.0]]), margin=0.0, min_depth=0.1, max_depth=50.0)
+    uv, depth = project_points(K, invert_transform(T), seg.reshape(-1, 3))
+    centres = np.repeat((boxes[:, :2] + boxes[:, 2:]) / 2, 2, axis=0)
+    assert np.allclose(uv, centres, atol=1e-6)
+    assert depth.reshape(2, 2) == pytest.approx(depth_intervals(boxes, K, np.array([[0.4, 1.2], [0.5, 2.0]]),
+                                                                0.0, 0.1, 50.0))
+
+
+def test_point_segment_distance_interior_and_ends():
+    seg = np.array([[[0.0, 0, 0], [2.0, 0, 0]]])
+    pts = np.array([[1.0, 1.0, 0.0], [-3.0, 0.0, 4.0], [2.0, 0.0, 0.0], [5.0, 4.0, 0.0]])
+    assert point_segment_distance(pts, seg)[0] == pytest.approx([1.0, 5.0, 0.0, 5.0])
+
+
+def test_lsq_center_intersection_midpoint_and_clamping():
+    rng = np.random.default_rng(0)
+    p = np.array([0.3, -0.2, 0.5])
+    dirs = rng.normal(size=(5, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    segs = np.stack([p - dirs * rng.uniform(0.5, 2, (5, 1)), p + dirs * rng.uniform(0.5, 2, (5, 1))], axis=1)
+    assert lsq_center(segs, prior_weight=1e-6) == pytest.approx(p, abs=1e-4)
+    assert lsq_center(segs[:1]) == pytest.approx(segs[0].mean(0))
+    # Two crossing lines whose intersection lies beyond the end of one segment: the centre minimises the
+    # distances to the segments (not the lines): brute force over a grid agrees.
+    segs = np.array([[[0.0, 0, 0], [1.0, 0, 0]], [[2.0, -1, 0], [2.0, 1, 0]]])
+    x = lsq_center(segs, prior_weight=1e-9)
+    assert x == pytest.approx([1.5, 0.0, 0.0], abs=1e-6)
+    cost = lambda q: np.sum(point_segment_distance(q[None], segs) ** 2)       # noqa: E731
+    assert cost(x) <= min(cost(x + d) for d in np.eye(3) * 1e-3) + 1e-12
+
+
+def test_dp_means_recovers_the_objects_from_noisy_detections():
+    scene = make_scene(5, seed=3, n_frames=40, mask_noise=2, rot_noise_deg=0.5, trans_noise=0.02)
+    assoc, _ = _run(scene)
+    tracks = assoc.confirmed_tracks()
+    assert len(tracks) == 5
+    gt = _gt_of_rows(assoc, scene)
+    majority = []
+    for t in tracks:
+        members = gt[assoc.rows.assign == t.object_id]
+        counts = np.bincount(members[members >= 0], minlength=5)
+        assert counts.max() / counts.sum() > 0.95
+        majority.append(counts.argmax())
+    assert sorted(majority) == [0, 1, 2, 3, 4]
+
+
+def test_ids_stable_under_incremental_updates():
+    scene = make_scene(4, seed=1, n_frames=40)
+    assoc, updates = _run(scene)
+    gt = _gt_of_rows(assoc, scene)
+    id_of: dict[int, int] = {}                 # ground-truth object -> its track id
+    for t in assoc.confirmed_tracks():
+        objs = np.unique(gt[assoc.rows.assign == t.object_id])
+        assert len(objs) == 1
+        id_of[int(objs[0])] = t.object_id
+    assert len(id_of) == 4 and assoc.merges == 0
+    # Ids published with a frame only ever go from -1 (cluster not yet published) to the final id.
+    first = np.concatenate([u.table['object_id'] for u in updates if u.table is not None])
+    final = np.concatenate([assoc.frame_table(int(s))['object_id'] for s in assoc.frames.stamp])
+    assert np.all((first == -1) | (first == final)) and np.mean(first == final) > 0.8
+    for g, oid in id_of.items():
+        assert np.all(final[gt == g] == oid)
+
+
+def _views(center, n=8, radius=3.0, height=1.5, sweep=np.pi):
+    angles = np.linspace(0, sweep, n)
+    return [look_at([center[0] + radius * np.cos(a), center[1] + radius * np.sin(a), height], center) for a in angles]
+
+
+def test_merge_keeps_the_older_id_and_resolves_same_frame_duplicates():
+    cfg = AssociationConfig(min_track_views=1, min_hit_ratio=0.0, full_pass_every=0)
+    assoc = Associator(cfg)
+    a, b = np.array([0.0, 0.0, 0.45]), np.array([1.2, 0.0, 0.45])
+    size = (0.5, 0.5, 0.9)
+    T = look_at([0.6, -3.0, 1.4], [0.6, 0.0, 0.4])
+    lab = [CHAIR * 256 + 1, CHAIR * 256 + 2]
+    assoc.add_frame(1, K, T, SIZE, lab, [_box_of(a, size, 0.0, T), _box_of(b, size, 0.0, T)])
+    assert sorted(assoc.tracks) == [0, 1]
+    assoc.tracks[1].center = assoc.tracks[0].center + [0.1, 0.0, 0.0]      # drift together
+    removed, dirty = assoc.merge_close()
+    assert removed == {1: 0} and list(assoc.tracks) == [0] and dirty == {0}
+    assert assoc.rows.assign.tolist() in ([0, -1], [-1, 0])               # one detection per frame and object
+
+
+def test_same_frame_detections_never_join_one_cluster():
+    assoc = Associator(AssociationConfig(min_track_views=1, min_hit_ratio=0.0))
+    a = np.array([0.0, 0.0, 0.45])
+    for k, T in enumerate(_views(a, n=3)):
+        assoc.add_frame(k, K, T, SIZE, [CHAIR * 256 + 1], [_box_of(a, (0.5, 0.5, 0.9), 0.0, T)])
+    # A frame with the chair twice (a split mask): both boxes are near the cluster, only one may join it.
+    T = _views(a, n=5)[3]
+    box = _box_of(a, (0.5, 0.5, 0.9), 0.0, T)
+    assoc.add_frame(10, K, T, SIZE, [CHAIR * 256 + 1, CHAIR * 256 + 2], [box, box + [2, 0, 2, 0]])
+    ids = assoc.frame_table(10)['object_id']
+    assert sorted(ids.tolist()) == [-1, 0]
+
+
+@pytest.mark.parametrize('floor', [None, 0.0])
+def test_box_fit_recovers_a_known_box(floor):
+    gt = Box3D(np.array([0.4, -0.3, 0.45]), np.array([0.6, 0.45, 0.9]), 0.3)
+    views = _views(gt.center, n=10, sweep=1.5 * np.pi)
+    T_cw = np.stack([invert_transform(T) for T in views])
+    boxes = np.stack([_box_of(gt.center, gt.size, gt.yaw, T) for T in views])
+    fit = fit_box(np.repeat(K[None], len(views), 0), T_cw, boxes, np.ones((len(views), 4), bool), (0.35, 1.3),
+                  gt.center + [0.15, -0.1, 0.1], floor_height=floor, size_prior_weight=1e-3, anchor_weight=1e-3)
+    assert fit.center == pytest.approx(gt.center, abs=0.01)
+    assert fit.size == pytest.approx(gt.size, abs=0.01)
+    assert fit.yaw == pytest.approx(gt.yaw, abs=np.radians(1.0))
+
+
+def test_pruning_rejects_small_occluded_and_overlapping_detections():
+    cfg = AssociationConfig(min_box_width=24, min_box_height=24, occlusion_iou=0.6, overlap_iou=0.4)
+    own = np.array([100.0, 50.0, 160.0, 170.0])
+    other = np.array([200.0, 60.0, 280.0, 160.0])
+    dets = np.array([own,                                   # clean: kept
+                     [100.0, 50.0, 120.0, 70.0],            # too small
+                     [100.0, 50.0, 160.0, 110.0],           # lower half occluded: IoU 0.5
+                     own,                                   # the same box but over the other object (below)
+                     [-0.5, 50.0, 40.0, 170.0]])            # truncated by the border (its projection is not)
+    obj = np.array([[own, other]] * 5)
+    obj[3, 1] = [90.0, 40.0, 170.0, 180.0]
+    obj[4, 0] = [-60.0, 50.0, 40.0, 170.0]
+    kept = prune_detections(dets, np.zeros(5, int), obj, np.ones((5, 2), bool), np.array([SIZE] * 5, float), cfg)
+    assert kept.tolist() == [True, False, False, False, False]
+
+
+def test_project_boxes_marks_objects_behind_the_camera():
+    T = look_at([0.0, -3.0, 1.0], [0.0, 0.0, 1.0])
+    corners = np.stack([Box3D(np.array([0.0, 0.0, 1.0]), np.ones(3) * 0.5, 0.0).corners(),
+                        Box3D(np.array([0.0, -4.0, 1.0]), np.ones(3) * 0.5, 0.0).corners()])
+    boxes, valid = project_boxes(K[None], invert_transform(T)[None], corners)
+    assert valid[0].tolist() == [True, False]
+    assert boxes[0, 0, 0] < 159.5 < boxes[0, 0, 2]
+
+
+def test_unknown_classes_and_invalid_boxes_are_not_associated():
+    assoc = Associator()
+    T = look_at([0.0, -3.0, 1.4], [0.0, 0.0, 0.4])
+    box = _box_of([0, 0, 0.45], (0.5, 0.5, 0.9), 0.0, T)
+    table = assoc.add_frame(5, K, T, SIZE, [1 * 256 + 1, CHAIR * 256 + 2], [box, [np.nan] * 4]).table
+    assert table['object_id'].tolist() == [-1, -1] and np.isnan(table['x']).all()
+    assert assoc.tracks == {} and table['label'].tolist() == [257, CHAIR * 256 + 2]
