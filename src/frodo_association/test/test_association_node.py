@@ -1,0 +1,100 @@
+"""The association node in a real rclpy graph: box-world frames in, one /frodo/associations table per frame
+(latest per stamp consistent with the ground truth) and latched /frodo/tracks boxes out; bad input (wrong
+encoding, NaN pose, missing pose) is reported on /diagnostics and survived."""
+import time
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from visualization_msgs.msg import Marker, MarkerArray
+
+from frodo_association.association_node import AssociationNode
+from frodo_association.synthetic import make_scene
+from frodo_common import conversions as conv
+from frodo_common import topics
+
+
+def test_association_node_end_to_end_and_bad_input():
+    scene = make_scene(2, seed=5, n_frames=24)
+    rclpy.init()
+    executor = SingleThreadedExecutor()
+    try:
+        node = AssociationNode(parameter_overrides=[Parameter('diagnostics_period', value=0.2),
+                                                    Parameter('full_pass_every', value=8)])
+        probe = rclpy.create_node('association_probe')
+        executor.add_node(node)
+        executor.add_node(probe)
+        assoc, tracks, diags = {}, [], []
+        probe.create_subscription(PointCloud2, topics.ASSOCIATIONS,
+                                  lambda m: assoc.__setitem__(conv.stamp_to_ns(m.header.stamp), m), topics.FRAME_QOS)
+        probe.create_subscription(MarkerArray, topics.TRACKS, tracks.append, topics.LATCHED_QOS)
+        probe.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, diags.append, 10)
+        det_pub = probe.create_publisher(Image, topics.DETECTIONS, topics.FRAME_QOS)
+        pose_pub = probe.create_publisher(PoseStamped, topics.POSE, topics.FRAME_QOS)
+        info_pub = probe.create_publisher(CameraInfo, topics.CAMERA_INFO, topics.FRAME_QOS)
+
+        def spin_until(cond, timeout=10.0):
+            deadline = time.time() + timeout
+            while time.time() < deadline and not cond():
+                executor.spin_once(timeout_sec=0.05)
+            return cond()
+
+        def status():
+            st = [s for m in diags for s in m.status if s.name == 'association_node']
+            return {kv.key: kv.value for kv in st[-1].values} if st else {}
+
+        spin_until(lambda: det_pub.get_subscription_count() > 0 and info_pub.get_subscription_count() > 0)
+        f0 = scene.frames[0]
+        # A frame before the camera info is held, then processed when the info arrives.
+        pose_pub.publish(conv.make_pose_stamped(f0.T_world_camera, f0.stamp, 'world'))
+        det_pub.publish(conv.numpy_to_image(f0.instances, '16UC1', f0.stamp, 'cam'))
+        spin_until(lambda: status().get('frames_waiting_for_camera_info') == '1')
+        info_pub.publish(conv.make_camera_info(f0.K, *f0.size, f0.stamp, 'cam'))
+        assert spin_until(lambda: f0.stamp in assoc)
+        # Bad input: detections without a pose (older than every good frame), wrong encoding, NaN pose.
+        det_pub.publish(conv.numpy_to_image(f0.instances, '16UC1', 1, 'cam'))
+        f1 = scene.frames[1]
+        pose_pub.publish(conv.make_pose_stamped(f1.T_world_camera, f1.stamp, 'world'))
+        det_pub.publish(conv.numpy_to_image(f1.instances.astype(np.uint8), 'mono8', f1.stamp, 'cam'))
+        f2 = scene.frames[2]
+        nan_pose = conv.make_pose_stamped(f2.T_world_camera, f2.stamp, 'world')
+        nan_pose.pose.position.x = float('nan')
+        pose_pub.publish(nan_pose)
+        det_pub.publish(conv.numpy_to_image(f2.instances, '16UC1', f2.stamp, 'cam'))
+        for f in scene.frames[3:]:
+            det_pub.publish(conv.numpy_to_image(f.instances, '16UC1', f.stamp, 'cam'))
+            pose_pub.publish(conv.make_pose_stamped(f.T_world_camera, f.stamp, 'world'))
+            executor.spin_once(timeout_sec=0.01)
+        good = [f0] + scene.frames[3:]
+        assert spin_until(lambda: all(f.stamp in assoc for f in good) and status().get('frames_dropped') == '3'
+                          and status().get('frames_published') == str(len(good)))
+        assert f1.stamp not in assoc and f2.stamp not in assoc and 1 not in assoc
+        st = status()
+        assert int(st['errors']) >= 3 and int(st['objects']) == 2
+        # Latest table per stamp: one id per ground-truth object, boxes and labels as sent.
+        id_of = {}
+        for f in good:
+            msg = assoc[f.stamp]
+            assert msg.header.frame_id == 'world'
+            table = conv.cloud_to_table(msg)
+            assert set(table.dtype.names) == {'x', 'y', 'z', 'label', 'object_id', 'kept', 'bbox'}
+            for row in table:
+                if row['object_id'] >= 0:
+                    assert id_of.setdefault(f.gt[int(row['label'])], int(row['object_id'])) == row['object_id']
+                    assert np.isfinite([row['x'], row['y'], row['z']]).all()
+        assert len(id_of) == 2 and len(set(id_of.values())) == 2
+        cubes = {(m.ns, m.id): m for m in tracks[-1].markers if m.action == Marker.ADD}
+        assert all(m.type == Marker.CUBE for m in cubes.values())
+        assert sorted(i for _, i in cubes) == sorted(id_of.values())
+        for g, oid in id_of.items():
+            obj = scene.objects[g]
+            ns = 'chair' if obj.coco_id == 62 else 'dining table'
+            centre, size, _ = conv.marker_to_box(cubes[(ns, oid)])
+            assert np.linalg.norm(centre - obj.center) < 0.1
+    finally:
+        executor.shutdown()
+        rclpy.shutdown()
