@@ -6,7 +6,7 @@ from pathlib import Path
 
 import yaml
 
-from frodo_bringup.graph import NODES, VIEWER, node_params, params_yaml, share_file, source_config_path
+from frodo_bringup.graph import ALL_NODES, NODES, VIEWER, node_params, params_yaml, share_file, source_config_path
 from frodo_common.params import COMMON_PARAMS
 
 PACKAGE_DIR = Path(source_config_path()).parents[1]
@@ -26,7 +26,7 @@ def test_shipped_yaml_is_the_generated_one():
 def test_shipped_yaml_holds_every_parameter_default():
     document = yaml.safe_load(source_config_path().read_text())
     assert document['/**']['ros__parameters'] == {s.name: s.default for s in COMMON_PARAMS}
-    for node in NODES + (VIEWER,):
+    for node in ALL_NODES:
         assert document[node.name]['ros__parameters'] == {s.name: s.default for s in node_params(node)}
 
 

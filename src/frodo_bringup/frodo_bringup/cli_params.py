@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from frodo_bringup.graph import GraphError, params_yaml, select_nodes, source_config_path
+from frodo_bringup.graph import ALL_NODES, GraphError, params_yaml, select_nodes, source_config_path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -21,7 +21,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Print, write or check the parameter YAML; 0 on success."""
     try:
-        text = params_yaml(select_nodes(None if args.write or args.check else args.nodes))
+        text = params_yaml(select_nodes(None if args.write or args.check else args.nodes, ALL_NODES))
     except GraphError as err:
         print(f'frodo params: error: {err}', file=sys.stderr)
         return 2

@@ -37,6 +37,8 @@ NODES: tuple[GraphNode, ...] = (
 )
 # Optional Rerun viewer (`frodo run --viewer rrd`, launch argument `viewer:=true`); not part of NODES.
 VIEWER = GraphNode('viewer_node', 'frodo_bringup.viewer_node', 'frodo_bringup')
+# Every node whose parameters the shipped YAML holds.
+ALL_NODES = NODES + (VIEWER,)
 # The node whose diagnostics (`state`, `pending_objects`) say when a bag is fully processed.
 OPTIMISER = 'optim_node'
 
@@ -95,7 +97,7 @@ def _params_block(key: str, specs: Sequence[ParamSpec]) -> list[str]:
     return lines
 
 
-def params_yaml(nodes: Sequence[GraphNode] = NODES + (VIEWER,)) -> str:
+def params_yaml(nodes: Sequence[GraphNode] = ALL_NODES) -> str:
     """ROS 2 params file with every parameter's default and description: common ones under `/**`."""
     lines = ['# FroDO parameter defaults, generated from the nodes\' PARAMS by `frodo params --write`.',
              '# Do not edit by hand: change the ParamSpec in the node and regenerate. Override values in your',
