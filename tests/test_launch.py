@@ -11,7 +11,7 @@ import time
 import psutil
 import pytest
 
-from frodo_bringup.graph import NODES, GraphError, select_nodes
+from frodo_bringup.graph import NODES, GraphError, select_nodes, share_file
 from frodo_bringup.launcher import Launcher
 from frodo_bringup.session import RosSession
 from frodo_bringup.testing import stub, wait_until
@@ -133,9 +133,9 @@ def test_bad_launch_options_are_explained(tmp_path):
 
 
 def test_real_graph_nodes_come_up_and_stop_cleanly(probe):
-    """Every real node entry point starts, joins the graph and exits cleanly on SIGINT."""
+    """Every real node entry point starts with the shipped parameters, joins the graph, exits cleanly on SIGINT."""
     output = io.StringIO()
-    launcher = Launcher(NODES, output=output, sigint_timeout=10)
+    launcher = Launcher(NODES, [share_file('config/frodo.yaml')], output=output, sigint_timeout=10)
     launcher.start()
     names = {n.name for n in NODES}
     try:
