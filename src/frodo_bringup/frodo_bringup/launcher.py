@@ -49,7 +49,7 @@ class NodeExit:
 
     @property
     def failed(self) -> bool:
-        """True for a crash (non-zero code while running) or an unclean stop (needed SIGTERM/SIGKILL)."""
+        """True for a crash (any exit but 0 while running) or an unclean stop (error code or killed after SIGINT)."""
         if self.expected:
             return self.returncode not in _CLEAN_SIGINT_CODES
         return self.returncode != 0
@@ -90,7 +90,7 @@ class Launcher:
     def __init__(self, nodes: Sequence[GraphNode], params_files: Iterable[str | os.PathLike] = (),
                  on_failure: str = 'stop', log_dir: str | os.PathLike | None = None,
                  output: TextIO | None = None, env: dict[str, str] | None = None,
-                 ros_args: Sequence[str] = (), max_restarts: int = 3, restart_delay: float = 1.0,
+                 max_restarts: int = 3, restart_delay: float = 1.0,
                  sigint_timeout: float = 5.0, sigterm_timeout: float = 3.0,
                  on_exit: Callable[[NodeExit], None] | None = None):
         if on_failure not in FAILURE_POLICIES:
@@ -105,7 +105,6 @@ class Launcher:
         self.log_dir = Path(log_dir) if log_dir is not None else None
         self.output = output if output is not None else sys.stdout
         self.env = dict(env) if env is not None else None
-        self.ros_args = list(ros_args)
         self.max_restarts = max_restarts
         self.restart_delay = restart_delay
         self.sigint_timeout = sigint_timeout
@@ -126,11 +125,6 @@ class Launcher:
     def node_names(self) -> list[str]:
         """Names of all nodes of this launch."""
         return [p.node.name for p in self._procs]
-
-    @property
-    def running_nodes(self) -> list[str]:
-        """Names of the nodes whose process is alive."""
-        return [p.node.name for p in self._procs if p.alive]
 
     @property
     def pids(self) -> dict[str, int]:
@@ -190,7 +184,7 @@ class Launcher:
                    '--ros-args', '-r', f'__node:={node.name}']
         for path in self.params_files:
             command += ['--params-file', str(path)]
-        return command + self.ros_args
+        return command
 
     def _child_env(self) -> dict[str, str]:
         env = dict(self.env if self.env is not None else os.environ)
