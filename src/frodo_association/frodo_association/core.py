@@ -7,7 +7,9 @@ size S at optical depth d spans about f*S/d pixels, so a box whose larger side s
 units (a = max(w/fx, h/fy)) puts the object at d = S / a. The class size range [S_min, S_max]
 (`frodo_common.categories`) turns this into a depth interval [S_min / a, S_max / a], widened by
 `depth_margin` on both sides (foreshortening, diagonals seen in the box, imperfect masks) and clamped to
-[min_depth, max_depth]. The ray cut to that interval is the 3D segment the object centre lies on.
+[min_depth, max_depth]. The ray cut to that interval is the 3D segment the object centre lies on. With
+`objects_on_floor` the segment is further cut to the heights an object centre can have, floor_height +
+[S_min / 4, S_max / 2 * (1 + depth_margin)] (the centre of an upright object is at half its height).
 
 Clustering. DP-means with segments as observations and 3D points as centres (Algorithm 1): the distance of
 a segment to a centre is the point-to-segment distance; a segment farther than the cluster penalty
@@ -71,20 +73,21 @@ class AssociationConfig:
     max_depth: float = 20.0
     center_prior_weight: float = 1e-3
     min_track_views: int = 3
-    min_hit_ratio: float = 0.4
-    drop_hit_ratio: float = 0.2
+    min_hit_ratio: float = 0.6
+    confirm_window: int = 10
+    drop_hit_ratio: float = 0.4
     truncated_opens_clusters: bool = False
     objects_on_floor: bool = True
     floor_height: float = 0.0
     size_prior_weight: float = 0.05
     center_anchor_weight: float = 1.0
-    box_refit_growth: float = 1.25
+    box_refit_growth: float = 1.5
     box_max_views: int = 24
     max_box_fits_per_frame: int = 1
     prune: bool = True
     min_box_width: float = 24.0
     min_box_height: float = 24.0
-    occlusion_iou: float = 0.5
+    occlusion_iou: float = 0.6
     overlap_iou: float = 0.4
     border_margin: float = 2.0
 
@@ -103,6 +106,8 @@ CONFIG_DOC: dict[str, str] = {
     'min_track_views': 'Detections a cluster needs before it is published as an object.',
     'min_hit_ratio': 'A cluster is published once it was detected in at least this fraction of the frames whose '
                      'image contains its centre (since its first detection).',
+    'confirm_window': 'Frames with the cluster centre in view (since its first detection) before the hit ratio '
+                      'may publish it.',
     'drop_hit_ratio': 'A published cluster whose hit ratio falls below this (checked at full passes) is withdrawn.',
     'truncated_opens_clusters': 'Let detections touching the image border open new clusters and count towards '
                                 'publishing one (their box centre and size are biased).',
@@ -152,6 +157,24 @@ def box_segments(boxes: np.ndarray, K: np.ndarray, T_world_camera: np.ndarray, s
     depth = depth_intervals(boxes, K, size_ranges, margin, min_depth, max_depth)
     pts_cam = d_cam[:, None, :] * depth[:, :, None]        # (N, 2, 3)
     return pts_cam @ T_world_camera[:3, :3].T + T_world_camera[:3, 3]
+
+
+def clip_segments_to_heights(segments: np.ndarray, z_min: np.ndarray, z_max: np.ndarray) -> np.ndarray:
+    """Cut segments (N, 2, 3) to the parts with z_min <= z <= z_max (each (N,)); a segment with no such part
+    is returned unchanged (its detection does not fit the height prior; the clustering decides)."""
+    a, b = segments[:, 0], segments[:, 1]
+    dz = b[:, 2] - a[:, 2]
+    flat = np.abs(dz) < 1e-9
+    safe = np.where(flat, 1.0, dz)
+    s1, s2 = (z_min - a[:, 2]) / safe, (z_max - a[:, 2]) / safe
+    inside = (a[:, 2] >= z_min) & (a[:, 2] <= z_max)
+    lo = np.where(flat, np.where(inside, 0.0, np.inf), np.minimum(s1, s2))
+    hi = np.where(flat, np.where(inside, 1.0, -np.inf), np.maximum(s1, s2))
+    lo, hi = np.maximum(lo, 0.0), np.minimum(hi, 1.0)
+    ok = lo <= hi
+    lo, hi = np.where(ok, lo, 0.0), np.where(ok, hi, 1.0)
+    ab = b - a
+    return np.stack([a + lo[:, None] * ab, a + hi[:, None] * ab], axis=1)
 
 
 def point_segment_distance(points: np.ndarray, segments: np.ndarray) -> np.ndarray:
@@ -510,6 +533,9 @@ class Associator:
         size_ranges = np.array([c.size_range if c is not None else (1.0, 1.0) for c in cats]).reshape(-1, 2)
         segments = box_segments(boxes, K, T_world_camera, size_ranges, cfg.depth_margin, cfg.min_depth,
                                 cfg.max_depth)
+        if cfg.objects_on_floor:     # the centre of an object standing on the floor is at half its height
+            segments = clip_segments_to_heights(segments, cfg.floor_height + 0.25 * size_ranges[:, 0],
+                                                cfg.floor_height + 0.5 * size_ranges[:, 1] * (1 + cfg.depth_margin))
         w, h = size
         m = cfg.border_margin
         edge_valid = np.stack([boxes[:, 0] > m - 0.5, boxes[:, 1] > m - 0.5,
@@ -758,7 +784,7 @@ class Associator:
 
     def _update_confirmation(self, recheck: bool) -> tuple[set[int], dict[int, int]]:
         """Confirm clusters with at least min_track_views reliable detections (not truncated, not too small:
-        those that may open clusters) and a hit ratio of at least
+        those that may open clusters), in view for at least confirm_window frames and a hit ratio of at least
         min_hit_ratio; with `recheck`, withdraw confirmed clusters whose hit ratio fell below drop_hit_ratio
         (over at least 2 * min_track_views frames in view). Returns (frames whose rows change, withdrawn ids)."""
         cfg = self.cfg
@@ -767,7 +793,8 @@ class Associator:
         withdrawn: dict[int, int] = {}
         for t in self.tracks.values():
             if not t.confirmed and counts[t.object_id] >= cfg.min_track_views:
-                if self.hit_ratio(t.object_id)[0] >= cfg.min_hit_ratio:
+                ratio, n_view = self.hit_ratio(t.object_id)
+                if ratio >= cfg.min_hit_ratio and n_view >= cfg.confirm_window:
                     t.confirmed = True
                     changed.append(t.object_id)
             elif t.confirmed and recheck:

@@ -153,15 +153,17 @@ def _noisy_masks(instances: np.ndarray, rng: np.random.Generator, radius: int, m
 
 def make_scene(n_objects: int, seed: int, n_frames: int = 60, size: tuple[int, int] = (320, 240),
                mask_noise: int = 0, rot_noise_deg: float = 0.0, trans_noise: float = 0.0,
-               miss_rate: float = 0.0, fps: float = 10.0) -> SynthScene:
-    """A seeded box-world walk: `n_objects` boxes, `n_frames` frames of `size` (width, height)."""
+               miss_rate: float = 0.0, fps: float = 10.0, extent: float = 1.6, radius: float = 3.6,
+               sweep_deg: float = 240.0) -> SynthScene:
+    """A seeded box-world walk: `n_objects` boxes in [-extent, extent]^2, `n_frames` frames of `size`
+    (width, height) from a camera walking an arc of `sweep_deg` at about `radius` from the origin."""
     rng = np.random.default_rng(seed)
-    objects = random_objects(n_objects, rng)
+    objects = random_objects(n_objects, rng, extent)
     w, h = size
     f = 0.9 * w
     K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
     frames = []
-    for k, T in enumerate(walk_poses(n_frames, rng)):
+    for k, T in enumerate(walk_poses(n_frames, rng, radius, sweep_deg)):
         instances, gt, vis = render_instances(objects, K, T, size)
         if mask_noise or miss_rate:
             instances = _noisy_masks(instances, rng, mask_noise, miss_rate)

@@ -3,9 +3,9 @@ DP-means over segments with stable ids, merges and same-frame exclusivity, box f
 import numpy as np
 import pytest
 
-from frodo_association.core import (AssociationConfig, Associator, Box3D, box_segments, depth_intervals,
-                                    detections_from_instances, fit_box, lsq_center, point_segment_distance,
-                                    project_boxes, prune_detections)
+from frodo_association.core import (AssociationConfig, Associator, Box3D, box_segments, clip_segments_to_heights,
+                                    depth_intervals, detections_from_instances, fit_box, lsq_center,
+                                    point_segment_distance, project_boxes, prune_detections)
 from frodo_association.synthetic import make_scene
 from frodo_common.geometry import invert_transform, look_at, project_points
 
@@ -105,7 +105,7 @@ def test_ids_stable_under_incremental_updates():
     # Ids published with a frame only ever go from -1 (cluster not yet published) to the final id.
     first = np.concatenate([u.table['object_id'] for u in updates if u.table is not None])
     final = np.concatenate([assoc.frame_table(int(s))['object_id'] for s in assoc.frames.stamp])
-    assert np.all((first == -1) | (first == final)) and np.mean(first == final) > 0.8
+    assert np.all((first == -1) | (first == final)) and np.mean(first == final) > 0.6
     for g, oid in id_of.items():
         assert np.all(final[gt == g] == oid)
 
@@ -116,7 +116,7 @@ def _views(center, n=8, radius=3.0, height=1.5, sweep=np.pi):
 
 
 def test_merge_keeps_the_older_id_and_resolves_same_frame_duplicates():
-    cfg = AssociationConfig(min_track_views=1, min_hit_ratio=0.0, full_pass_every=0)
+    cfg = AssociationConfig(min_track_views=1, min_hit_ratio=0.0, confirm_window=1, full_pass_every=0)
     assoc = Associator(cfg)
     a, b = np.array([0.0, 0.0, 0.45]), np.array([1.2, 0.0, 0.45])
     size = (0.5, 0.5, 0.9)
@@ -131,7 +131,7 @@ def test_merge_keeps_the_older_id_and_resolves_same_frame_duplicates():
 
 
 def test_same_frame_detections_never_join_one_cluster():
-    assoc = Associator(AssociationConfig(min_track_views=1, min_hit_ratio=0.0))
+    assoc = Associator(AssociationConfig(min_track_views=1, min_hit_ratio=0.0, confirm_window=1))
     a = np.array([0.0, 0.0, 0.45])
     for k, T in enumerate(_views(a, n=3)):
         assoc.add_frame(k, K, T, SIZE, [CHAIR * 256 + 1], [_box_of(a, (0.5, 0.5, 0.9), 0.0, T)])
@@ -188,3 +188,28 @@ def test_unknown_classes_and_invalid_boxes_are_not_associated():
     table = assoc.add_frame(5, K, T, SIZE, [1 * 256 + 1, CHAIR * 256 + 2], [box, [np.nan] * 4]).table
     assert table['object_id'].tolist() == [-1, -1] and np.isnan(table['x']).all()
     assert assoc.tracks == {} and table['label'].tolist() == [257, CHAIR * 256 + 2]
+
+
+def test_segments_are_cut_to_plausible_centre_heights():
+    segs = np.array([[[0.0, 0, 2.0], [4.0, 0, -2.0]],      # crosses the band 0.1..0.7
+                     [[0.0, 0, 0.5], [1.0, 0, 0.5]],        # flat, inside
+                     [[0.0, 0, 3.0], [1.0, 0, 2.0]]])       # entirely above: unchanged
+    out = clip_segments_to_heights(segs, np.full(3, 0.1), np.full(3, 0.7))
+    assert np.allclose(out[0], [[1.3, 0, 0.7], [1.9, 0, 0.1]])
+    assert np.array_equal(out[1], segs[1]) and np.array_equal(out[2], segs[2])
+
+
+def test_a_cluster_rarely_detected_while_in_view_is_not_published():
+    assoc = Associator(AssociationConfig(full_pass_every=5))
+    a, b = np.array([-0.6, 0.0, 0.45]), np.array([0.6, 0.0, 0.45])
+    for k, T in enumerate(_views((a + b) / 2, n=20, radius=3.5, sweep=np.pi / 2)):
+        labels, boxes = [CHAIR * 256 + 1], [_box_of(a, (0.5, 0.5, 0.9), 0.0, T)]
+        if k < 4:                                  # b is in view throughout but detected in 4 frames only
+            labels.append(CHAIR * 256 + 2)
+            boxes.append(_box_of(b, (0.5, 0.5, 0.9), 0.0, T))
+        assoc.add_frame(k, K, T, SIZE, labels, boxes)
+    assert len(assoc.tracks) == 2
+    published = assoc.confirmed_tracks()
+    assert len(published) == 1 and np.linalg.norm(published[0].center - a) < 0.1
+    ratio, n_view = assoc.hit_ratio(next(i for i in assoc.tracks if i != published[0].object_id))
+    assert ratio == pytest.approx(4 / 20) and n_view == 20
