@@ -68,10 +68,12 @@ class AssociationConfig:
     merge_distance: float = 0.25
     full_pass_every: int = 20
     max_em_iterations: int = 10
+    reassign_ratio: float = 0.5
     depth_margin: float = 0.3
     min_depth: float = 0.3
     max_depth: float = 20.0
     center_prior_weight: float = 1e-3
+    max_center_segments: int = 64
     min_track_views: int = 3
     min_hit_ratio: float = 0.6
     confirm_window: int = 10
@@ -98,11 +100,14 @@ CONFIG_DOC: dict[str, str] = {
     'merge_distance': 'Clusters of one class whose centres come closer than this (m) are merged; the older id survives.',
     'full_pass_every': 'Frames between full DP-means EM passes over all segments (0: never).',
     'max_em_iterations': 'Maximum EM iterations of a full pass.',
+    'reassign_ratio': 'Full-pass hysteresis: a detection moves to another cluster only if that centre is closer '
+                      'than this times the distance to its own (1: plain DP-means re-assignment).',
     'depth_margin': 'Relative widening of the depth interval [S_min/a, S_max/a] of a detection segment.',
     'min_depth': 'Segments start no closer than this (m, optical depth).',
     'max_depth': 'Segments end no farther than this (m, optical depth).',
     'center_prior_weight': 'Weight (per segment) pulling a cluster centre towards the mean segment midpoint; '
                            'regularises near-parallel segments.',
+    'max_center_segments': 'Segments per cluster used to re-estimate its centre, evenly spread over its detections.',
     'min_track_views': 'Detections a cluster needs before it is published as an object.',
     'min_hit_ratio': 'A cluster is published once it was detected in at least this fraction of the frames whose '
                      'image contains its centre (since its first detection).',
@@ -186,37 +191,54 @@ def point_segment_distance(points: np.ndarray, segments: np.ndarray) -> np.ndarr
     return np.linalg.norm(points[None] - (a + t[..., None] * ab), axis=2)
 
 
-def lsq_center(segments: np.ndarray, prior_weight: float = 1e-3, max_iter: int = 10) -> np.ndarray:
-    """Point (3,) minimising the sum of squared distances to segments (N, 2, 3).
+def _group_sum(values: np.ndarray, group: np.ndarray, n_groups: int) -> np.ndarray:
+    """Sums of values (N, ...) per group (N,) in 0..n_groups-1 -> (n_groups, ...), one bincount."""
+    flat = values.reshape(len(values), -1)
+    k = flat.shape[1]
+    idx = (group[:, None] * k + np.arange(k)).ravel()
+    return np.bincount(idx, flat.ravel(), minlength=n_groups * k).reshape((n_groups,) + values.shape[1:])
 
-    Active-set least squares: a segment whose closest point is interior acts as its infinite line
-    (residual projector I - u u^T), one whose closest point is an end acts as that end point (projector I);
-    solve the 3x3 normal equations, update the active set, repeat until it is stable. A weak pull
-    (`prior_weight` per segment) towards the mean midpoint fixes the position along near-parallel
-    segments, and gives the midpoint for a single segment.
+
+def lsq_centers(segments: np.ndarray, group: np.ndarray, n_groups: int, prior_weight: float = 1e-3,
+                max_iter: int = 10) -> np.ndarray:
+    """Per group, the point minimising the sum of squared distances to its segments.
+
+    segments: (N, 2, 3); group: (N,) in 0..n_groups-1. Returns (n_groups, 3) (NaN for an empty group).
+    Active-set least squares, all groups at once: a segment whose closest point is interior acts as its
+    infinite line (residual projector I - u u^T), one whose closest point is an end acts as that end point
+    (projector I); solve the 3x3 normal equations of every group, update the active sets, repeat until they
+    are stable. A weak pull (`prior_weight` per segment) towards the group's mean midpoint fixes the
+    position along near-parallel segments, and gives the midpoint for a single segment.
     """
     a, b = segments[:, 0], segments[:, 1]
     ab = b - a
-    length2 = np.maximum(np.sum(ab * ab, axis=1), 1e-12)
+    length2 = np.maximum(np.einsum('ij,ij->i', ab, ab), 1e-12)
     u = ab / np.sqrt(length2)[:, None]
-    m = 0.5 * (a + b).mean(axis=0)
-    line_q = np.eye(3)[None] - u[:, :, None] * u[:, None, :]          # (N, 3, 3)
-    w = prior_weight * len(segments)
-    x = None
-    state = np.zeros(len(segments), dtype=np.int8)                    # 0 interior, -1 start, 1 end
+    uu = u[:, :, None] * u[:, None, :]                                  # (N, 3, 3)
+    line_rhs = a - u * np.einsum('ij,ij->i', u, a)[:, None]             # (I - u u^T) a
+    count = np.bincount(group, minlength=n_groups).astype(np.float64)
+    w = prior_weight * count
+    prior = w[:, None] * _group_sum(0.5 * (a + b), group, n_groups) / np.maximum(count, 1)[:, None]
+    diag = (count + w + (count == 0))[:, None, None] * np.eye(3)       # empty groups stay solvable
+    state = np.zeros(len(segments), dtype=np.int8)                      # 0 interior, -1 start, 1 end
+    x = np.zeros((n_groups, 3))
     for _ in range(max_iter):
-        interior = state == 0
-        anchor = np.where((state == 1)[:, None], b, a)
-        q = np.where(interior[:, None, None], line_q, np.eye(3)[None])
-        A = q.sum(axis=0) + w * np.eye(3)
-        rhs = np.einsum('nij,nj->i', q, anchor) + w * m
-        x = np.linalg.solve(A, rhs)
-        t = np.sum((x - a) * ab, axis=1) / length2
+        line = state == 0
+        A = diag - _group_sum(uu * line[:, None, None], group, n_groups)
+        anchor = np.where(line[:, None], line_rhs, np.where((state < 0)[:, None], a, b))
+        x = np.linalg.solve(A, (_group_sum(anchor, group, n_groups) + prior)[..., None])[..., 0]
+        t = np.einsum('ij,ij->i', x[group] - a, ab) / length2
         new_state = np.where(t <= 0.0, -1, np.where(t >= 1.0, 1, 0)).astype(np.int8)
         if np.array_equal(new_state, state):
             break
         state = new_state
+    x[count == 0] = np.nan
     return x
+
+
+def lsq_center(segments: np.ndarray, prior_weight: float = 1e-3) -> np.ndarray:
+    """Point (3,) minimising the sum of squared distances to segments (N, 2, 3) (see `lsq_centers`)."""
+    return lsq_centers(segments, np.zeros(len(segments), dtype=np.int64), 1, prior_weight)[0]
 
 
 def gated_assignment(cost: np.ndarray, gate: float) -> np.ndarray:
@@ -674,10 +696,25 @@ class Associator:
         return touched
 
     def _update_centers(self, ids) -> None:
-        for oid in ids:
-            members = self.members(oid)
-            if len(members):
-                self.tracks[oid].center = lsq_center(self.rows.segment[members], self.cfg.center_prior_weight)
+        """Re-estimate the centres of the given clusters from their member segments (one batched solve)."""
+        ids = np.asarray(sorted(ids), dtype=np.int64)
+        if len(ids) == 0:
+            return
+        slot = np.full(self.next_id + 1, -1, np.int64)
+        slot[ids] = np.arange(len(ids))
+        rows = np.nonzero(slot[self.rows.assign] >= 0)[0]
+        group = slot[self.rows.assign[rows]]
+        # At most max_center_segments per cluster, evenly spread over its detections (bounded cost).
+        order = np.argsort(group, kind='stable')
+        rows, group = rows[order], group[order]
+        counts = np.bincount(group, minlength=len(ids))
+        rank = np.arange(len(rows)) - (np.cumsum(counts) - counts)[group]
+        cap, n = self.cfg.max_center_segments, counts[group]
+        keep = (n <= cap) | ((rank * cap) // np.maximum(n, 1) != ((rank - 1) * cap) // np.maximum(n, 1))
+        centers = lsq_centers(self.rows.segment[rows[keep]], group[keep], len(ids), self.cfg.center_prior_weight)
+        for oid, c in zip(ids, centers):
+            if np.all(np.isfinite(c)):
+                self.tracks[int(oid)].center = c
 
     def full_pass(self) -> tuple[set[int], dict[int, int]]:
         """EM over all detections until the assignment is stable (at most max_em_iterations): nearest centre
@@ -695,15 +732,22 @@ class Associator:
             classes = np.array([self.tracks[i].coco_id for i in ids])
             dist = point_segment_distance(centers, self.rows.segment[valid])
             dist[self.rows.coco[valid][:, None] != classes[None, :]] = np.inf
-            best = np.argmin(dist, axis=1)
-            ok = dist[np.arange(len(valid)), best] < cfg.cluster_penalty
+            # Hysteresis: a detection leaves its cluster only for a centre reassign_ratio times closer.
+            cost = np.where(dist < cfg.cluster_penalty, dist, np.inf)
+            slot = np.full(self.next_id + 1, -1, np.int64)
+            slot[ids] = np.arange(len(ids))
+            cur = slot[self.rows.assign[valid]]
+            has = np.nonzero(cur >= 0)[0]
+            cost[has, cur[has]] *= cfg.reassign_ratio
+            best = np.argmin(cost, axis=1)
+            ok = np.isfinite(cost[np.arange(len(valid)), best])
             assign = np.where(ok, best, -1)
             frames = self.rows.frame[valid]
             key = frames * (len(ids) + 1) + np.where(ok, best, len(ids))
             _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
             for f in np.unique(frames[ok & (counts[inv] > 1)]):       # same-frame clashes: Hungarian
                 rows_f = np.nonzero(frames == f)[0]
-                assign[rows_f] = gated_assignment(dist[rows_f], cfg.cluster_penalty)
+                assign[rows_f] = gated_assignment(cost[rows_f], cfg.cluster_penalty)
             new_assign = np.where(assign >= 0, ids[np.maximum(assign, 0)], -1)
             changed = not np.array_equal(new_assign, self.rows.assign[valid])
             self.rows.assign[valid] = new_assign
