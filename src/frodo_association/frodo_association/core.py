@@ -14,29 +14,38 @@ units (a = max(w/fx, h/fy)) puts the object at d = S / a. The class size range [
 Clustering. DP-means with segments as observations and 3D points as centres (Algorithm 1): the distance of
 a segment to a centre is the point-to-segment distance; a segment farther than the cluster penalty
 lambda from every centre of its class opens a new cluster at its midpoint; a centre is the point
-minimising the sum of squared distances to its member segments (`lsq_center`). It runs incrementally:
-each frame's segments are matched to the centres of their class by a Hungarian assignment gated by
-lambda, because a frame sees an object at most once; centres of the touched clusters are re-estimated;
-every `full_pass_every` frames a full EM pass re-assigns every segment until the assignment is stable.
+minimising the sum of squared distances to its member segments (`lsq_centers`, at most
+`max_center_segments` per cluster). It runs incrementally: each frame's segments are matched to the
+centres of their class by a Hungarian assignment gated by lambda, because a frame sees an object at most
+once, and the centres of the touched clusters are re-estimated; every `full_pass_every` frames a full EM
+pass re-assigns every segment (with hysteresis, `reassign_ratio`, against drift between neighbouring
+clusters along long segments) until the assignment is stable.
 Ids are never reused and never renumbered: a cluster keeps its id until it is merged away (two centres of
 one class closer than `merge_distance`; the older id survives) or emptied by a full pass.
-Same-frame duplicates: when a merge or a full pass puts two detections of one frame on one object, the one
-nearer the centre keeps it and the other is ignored (object id -1); a segment within lambda of a centre
-that a closer detection of its frame already holds is ignored rather than opening a cluster (it is a
-split mask or a duplicate detection). A cluster becomes a published object ("confirmed") once it has
-`min_track_views` detections; until then its detections carry object id -1.
+Same-frame duplicates and splits: when a merge or a full pass puts two detections of one frame on one
+object, the one nearer the centre keeps it and the other is ignored (object id -1); a segment within
+lambda of a centre that a closer detection of its frame already holds is ignored rather than opening a
+cluster (a split mask or a duplicate detection). Detections touching the image border or smaller than
+the pruning size are "unreliable": they join clusters but open none and do not count towards publishing.
+Publishing ("confirmed"): a cluster is published once it has `min_track_views` reliable detections, has
+been in view (its centre projects into the image) for `confirm_window` frames since its first detection,
+and was detected in at least `min_hit_ratio` of them; a published cluster whose hit ratio drops below
+`drop_hit_ratio` (checked at full passes) is withdrawn. This removes the short-lived clusters opened by
+occluded detections, whose box centres are off. Unpublished clusters' detections carry object id -1.
 
-Boxes. Each confirmed object gets an upright 3D box (centre, size (dx, dy, dz), yaw about gravity z), in
+Boxes. Each published object gets an upright 3D box (centre, size (dx, dy, dz), yaw about gravity z), in
 the spirit of QuadricSLAM's boxes from 2D detections: initialised at the cluster centre with the class
-size prior and refined with scipy `least_squares` (soft-L1) so that the projected box corners match the
-2D detection boxes, edge by edge (edges at the image border are truncated and left out); objects stand on
-the floor plane z = floor_height when `objects_on_floor`. Boxes are refitted when an object has grown by
-`box_refit_growth` since its last fit.
+size prior and refined with scipy `least_squares` (soft-L1, analytic Jacobian) so that the projected box
+corners match the 2D detection boxes, edge by edge (edges at the image border are truncated and left
+out), with a weak pull to the cluster centre; objects stand on the floor plane z = floor_height when
+`objects_on_floor`. Boxes are refitted (`Associator.refine_boxes`, bounded per frame) when an object has
+grown by `box_refit_growth` since its last fit, from its kept detections when pruning leaves enough.
 
 Pruning (supplement "Detection Pruning"): a detection is kept when (1) its box is at least
 min_box_width x min_box_height pixels, (2) the IoU between it and the projection of its object's 3D box
-(clipped to the image) is at least `occlusion_iou` (occlusion or truncation otherwise), and (3) its IoU
-with the projected box of every other object in view is at most `overlap_iou`.
+is at least `occlusion_iou` (the projection is not clipped to the image, so truncation fails this test as
+well as occlusion), and (3) its IoU with the (clipped) projected box of every other published object is at
+most `overlap_iou`.
 
 Conventions: boxes (x0, y0, x1, y1) in pixel-edge coordinates (pixel (u, v) is the centre of column u, row
 v); world frame gravity aligned, z up; `T_world_camera` is the camera pose (optical frame).
