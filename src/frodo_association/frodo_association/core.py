@@ -117,7 +117,8 @@ CONFIG_DOC: dict[str, str] = {
     'center_prior_weight': 'Weight (per segment) pulling a cluster centre towards the mean segment midpoint; '
                            'regularises near-parallel segments.',
     'max_center_segments': 'Segments per cluster used to re-estimate its centre, evenly spread over its detections.',
-    'min_track_views': 'Detections a cluster needs before it is published as an object.',
+    'min_track_views': 'Reliable detections (not truncated, at least min_box_width x min_box_height) a cluster '
+                       'needs before it is published as an object.',
     'min_hit_ratio': 'A cluster is published once it was detected in at least this fraction of the frames whose '
                      'image contains its centre (since its first detection).',
     'confirm_window': 'Frames with the cluster centre in view (since its first detection) before the hit ratio '

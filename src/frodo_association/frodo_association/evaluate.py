@@ -14,7 +14,8 @@ Metrics (per scene, then pooled over scenes):
 - pruning: kept fraction, mean ground-truth visibility of kept and of pruned detections, fraction of kept
   detections less than 70 % visible ("bad kept").
 
-Usage: python -m frodo_association.evaluate [--seeds 100-119] [--objects 2-5] [--frames 60] [--json OUT]
+Usage: python -m frodo_association.evaluate [--seeds 100-119] [--objects 2-5] [--frames 60]
+       [--layout walk|dense] [--conditions NAME,...] [--no-ablation] [--json OUT]
 """
 from __future__ import annotations
 
@@ -31,6 +32,10 @@ from frodo_association.core import AssociationConfig, Associator, canonical_yaw
 from frodo_association.synthetic import SynthScene, make_scene
 from frodo_detection.core import FilterConfig, filter_instances
 
+LAYOUTS: dict[str, dict] = {
+    'walk': {},                                                   # 320x240, ~3.6 m arc of 240 deg, 3.2 m square
+    'dense': {'size': (640, 480), 'extent': 2.0, 'radius': 7.5, 'sweep_deg': 90.0},   # many objects, far
+}
 CONDITIONS: dict[str, dict] = {
     'clean': {},
     'mask noise 2px': {'mask_noise': 2},
@@ -148,6 +153,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--seeds', default='100-119', help='scene seeds, e.g. 100-119 (tuning used 0-19)')
     ap.add_argument('--objects', default='2-5', help='objects per scene, cycled over the seeds')
     ap.add_argument('--frames', type=int, default=60)
+    ap.add_argument('--layout', default='walk', choices=sorted(LAYOUTS),
+                    help="'walk': 240 deg arc at ~3.6 m; 'dense': 4 m square seen from 7.5 m over 90 deg")
+    ap.add_argument('--no-ablation', action='store_true', help='only run with pruning on')
     ap.add_argument('--conditions', default=','.join(CONDITIONS), help='comma-separated subset of: '
                     + ', '.join(CONDITIONS))
     ap.add_argument('--json', help='also write the results as JSON')
@@ -156,17 +164,19 @@ def main(argv: list[str] | None = None) -> int:
     filt = FilterConfig()
     base = AssociationConfig()
     out = {'machine': f'{platform.node()} ({platform.processor() or platform.machine()})', 'results': {}}
-    print(f'# association evaluation: seeds {args.seeds}, {args.objects} objects, {args.frames} frames, '
+    print(f'# association evaluation: {args.layout} layout, seeds {args.seeds}, {args.objects} objects, '
+          f'{args.frames} frames, '
           f'{out["machine"]}')
     header = ('| condition | pruning | purity | assigned | completeness | dup | false | centre err (m) | '
               'size err (m) | yaw err (deg) | kept | vis kept / pruned | bad kept | assoc ms | refine ms |')
     print(header)
     print('|' + '---|' * (header.count('|') - 1))
     for name in [c.strip() for c in args.conditions.split(',')]:
-        for prune in (True, False):
+        for prune in (True,) if args.no_ablation else (True, False):
             cfg = replace(base, prune=prune)
             results = [run_scene(make_scene(n_objects[i % len(n_objects)], seed, n_frames=args.frames,
-                                            **CONDITIONS[name]), cfg, filt) for i, seed in enumerate(seeds)]
+                                            **LAYOUTS[args.layout], **CONDITIONS[name]), cfg, filt)
+                       for i, seed in enumerate(seeds)]
             m = summarise(results)
             out['results'][f'{name} / prune={prune}'] = m
             print(f"| {name} | {'on' if prune else 'off'} | {m['purity']:.3f} | {m['assigned']:.3f} | "
