@@ -16,6 +16,7 @@ Metrics (per scene, then pooled over scenes):
 
 Usage: python -m frodo_association.evaluate [--seeds 100-119] [--objects 2-5] [--frames 60]
        [--layout walk|dense] [--conditions NAME,...] [--no-ablation] [--json OUT]
+       python -m frodo_association.evaluate --bags A.mcap [B.mcap ...]   (contract bags with ground truth)
 """
 from __future__ import annotations
 
@@ -25,12 +26,13 @@ import platform
 import time
 from dataclasses import asdict, dataclass, replace
 
+import cv2
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from frodo_association.core import AssociationConfig, Associator, canonical_yaw
-from frodo_association.synthetic import SynthScene, make_scene
-from frodo_detection.core import FilterConfig, filter_instances
+from frodo_association.core import AssociationConfig, Associator, box_iou, canonical_yaw, clip_boxes
+from frodo_association.synthetic import BoxObject, SynthFrame, SynthScene, make_scene
+from frodo_detection.core import FilterConfig, filter_instances, instance_boxes
 
 LAYOUTS: dict[str, dict] = {
     'walk': {},                                                   # 320x240, ~3.6 m arc of 240 deg, 3.2 m square
@@ -82,7 +84,7 @@ def run_scene(scene: SynthScene, cfg: AssociationConfig, filt: FilterConfig) -> 
         res.assoc_ms.append(1e3 * (t1 - t0))
         res.refine_ms.append(1e3 * (time.perf_counter() - t1))
         gt_rows += [frame.gt.get(int(lab), -1) for lab in labels]
-        vis_rows += [frame.visibility.get(int(lab), 0.0) for lab in labels]
+        vis_rows += [frame.visibility.get(int(lab), np.nan) for lab in labels]
     while assoc.refine_boxes(max_fits=100).fitted:     # final boxes of the whole sequence
         pass
     gt = np.array(gt_rows, dtype=np.int64)
@@ -129,6 +131,7 @@ def summarise(results: list[SceneResult]) -> dict:
     s = lambda name: sum(getattr(r, name) for r in results)           # noqa: E731
     cat = lambda name: np.concatenate([np.asarray(getattr(r, name), float) for r in results])  # noqa: E731
     kept_vis, pruned_vis = cat('kept_vis'), cat('pruned_vis')
+    kept_vis, pruned_vis = kept_vis[np.isfinite(kept_vis)], pruned_vis[np.isfinite(pruned_vis)]
     ms = lambda a: float(np.mean(a)) if len(a) else float('nan')       # noqa: E731
     return {
         'scenes': len(results), 'objects': s('objects'), 'detections': s('detections'),
@@ -142,14 +145,98 @@ def summarise(results: list[SceneResult]) -> dict:
     }
 
 
+def _upright_box(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """(centre, size, yaw) of the smallest upright box around vertices (N, 3) (minimum-area rectangle in xy)."""
+    (cx, cy), (w, h), angle = cv2.minAreaRect(vertices[:, :2].astype(np.float32))
+    z0, z1 = vertices[:, 2].min(), vertices[:, 2].max()
+    return np.array([cx, cy, (z0 + z1) / 2]), np.array([w, h, z1 - z0]), float(np.radians(angle))
+
+
+def scene_from_bag(path: str, min_iou: float = 0.3) -> tuple[SynthScene, list[str]]:
+    """A contract bag with /camera/instances and /ground_truth/objects as a scene to score.
+
+    Ground-truth objects: upright boxes around the ground-truth meshes (class from the marker ns). Each
+    instance is labelled with the ground-truth object of its class whose projected mesh (bounding box of
+    the projected vertices, clipped to the image) has the highest IoU with the instance box, at least
+    `min_iou` (an approximation for occluded instances). Returns (scene, notes).
+    """
+    from frodo_common import conversions as conv
+    from frodo_common import topics
+    from frodo_common.bag import BagReader
+    from frodo_common.categories import BY_NAME
+    from frodo_common.geometry import invert_transform, project_points
+
+    reader = BagReader(path)
+    notes = list(reader.problems)
+    info, poses, instances, objects, vertices = None, {}, {}, [], []
+    for m in reader.messages([topics.CAMERA_INFO, topics.POSE, topics.INSTANCES, topics.GROUND_TRUTH]):
+        msg = m.decode()
+        if m.topic == topics.CAMERA_INFO and info is None:
+            info = (conv.camera_info_to_K(msg), (int(msg.width), int(msg.height)))
+        elif m.topic == topics.POSE:
+            poses[conv.stamp_to_ns(msg.header.stamp)] = conv.pose_to_matrix(msg.pose)
+        elif m.topic == topics.INSTANCES:
+            instances[conv.stamp_to_ns(msg.header.stamp)] = conv.image_to_numpy(msg)
+        elif m.topic == topics.GROUND_TRUTH and not objects:
+            for marker in msg.markers:
+                if marker.ns not in BY_NAME:
+                    notes.append(f'ground-truth class {marker.ns!r} unknown, skipped')
+                    continue
+                verts, _ = conv.marker_to_mesh(marker)
+                objects.append(BoxObject(BY_NAME[marker.ns].coco_id, *_upright_box(verts)))
+                vertices.append(verts[np.linspace(0, len(verts) - 1, min(len(verts), 2000)).astype(int)])
+    if info is None or not objects:
+        raise ValueError(f'{path}: needs {topics.CAMERA_INFO} and {topics.GROUND_TRUTH}')
+    K, size = info
+    owner = np.concatenate([np.full(len(v), k) for k, v in enumerate(vertices)])
+    points = np.concatenate(vertices)
+    classes = np.array([o.coco_id for o in objects])
+    frames = []
+    for stamp in sorted(set(poses) & set(instances)):
+        uv, depth = project_points(K, invert_transform(poses[stamp]), points)
+        front = depth > 0.05
+        gt_boxes = np.zeros((len(objects), 4))
+        seen = np.zeros(len(objects), dtype=bool)
+        for k in range(len(objects)):
+            sel = front & (owner == k)
+            if sel.any():
+                gt_boxes[k] = [*uv[sel].min(0), *uv[sel].max(0)]
+                seen[k] = True
+        gt_boxes = clip_boxes(gt_boxes[None], np.array([size], float))[0]
+        labels, boxes, _ = instance_boxes(instances[stamp])
+        iou = box_iou(boxes[:, None, :], gt_boxes[None, :, :])
+        iou[:, ~seen] = 0.0
+        iou[(labels[:, None] >> 8) != classes[None, :]] = 0.0
+        gt = {int(lab): int(row.argmax()) for lab, row in zip(labels, iou) if row.size and row.max() >= min_iou}
+        frames.append(SynthFrame(stamp, K, poses[stamp], poses[stamp], size, instances[stamp], gt, {}))
+    notes.append(f'{len(frames)} frames with pose and instances, {len(objects)} ground-truth objects')
+    return SynthScene(objects, frames), notes
+
+
 def _range(text: str) -> list[int]:
     lo, _, hi = text.partition('-')
     return list(range(int(lo), int(hi or lo) + 1))
 
 
+HEADER = ('| scenes | pruning | purity | assigned | completeness | dup | false | centre err (m) | size err (m) | '
+          'yaw err (deg) | kept | vis kept / pruned | bad kept | assoc ms | refine ms |')
+
+
+def table_row(name: str, prune: bool, m: dict) -> str:
+    """One Markdown row of HEADER."""
+    return (f"| {name} | {'on' if prune else 'off'} | {m['purity']:.3f} | {m['assigned']:.3f} | "
+            f"{m['completeness']:.3f} | {m['duplicates']} | {m['false_tracks']} | {m['center_err_m']:.3f} | "
+            f"{m['size_err_m']:.3f} | {m['yaw_err_deg']:.1f} | {m['kept_frac']:.2f} | "
+            f"{m['kept_vis']:.2f} / {m['pruned_vis']:.2f} | {m['bad_kept_frac']:.3f} | "
+            f"{m['assoc_ms_mean']:.2f} | {m['refine_ms_mean']:.2f} |")
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Command line: evaluate clean and noisy box-world walks, with and without pruning; print a Markdown table."""
+    """Command line: evaluate box-world walks (or contract bags with ground truth), with and without pruning;
+    print a Markdown table."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument('--bags', nargs='+', metavar='MCAP', help='score these contract bags (with /camera/instances '
+                    'and /ground_truth/objects) instead of box-world scenes')
     ap.add_argument('--seeds', default='100-119', help='scene seeds, e.g. 100-119 (tuning used 0-19)')
     ap.add_argument('--objects', default='2-5', help='objects per scene, cycled over the seeds')
     ap.add_argument('--frames', type=int, default=60)
@@ -160,30 +247,30 @@ def main(argv: list[str] | None = None) -> int:
                     + ', '.join(CONDITIONS))
     ap.add_argument('--json', help='also write the results as JSON')
     args = ap.parse_args(argv)
-    seeds, n_objects = _range(args.seeds), _range(args.objects)
     filt = FilterConfig()
     base = AssociationConfig()
     out = {'machine': f'{platform.node()} ({platform.processor() or platform.machine()})', 'results': {}}
-    print(f'# association evaluation: {args.layout} layout, seeds {args.seeds}, {args.objects} objects, '
-          f'{args.frames} frames, '
-          f'{out["machine"]}')
-    header = ('| condition | pruning | purity | assigned | completeness | dup | false | centre err (m) | '
-              'size err (m) | yaw err (deg) | kept | vis kept / pruned | bad kept | assoc ms | refine ms |')
-    print(header)
-    print('|' + '---|' * (header.count('|') - 1))
-    for name in [c.strip() for c in args.conditions.split(',')]:
+    if args.bags:
+        groups = {}
+        for path in args.bags:
+            scene, notes = scene_from_bag(path)
+            print(f'# {path}: ' + '; '.join(notes))
+            groups[path] = [scene]
+        print(f'# association evaluation of {len(args.bags)} bag(s), {out["machine"]}')
+    else:
+        seeds, n_objects = _range(args.seeds), _range(args.objects)
+        groups = {name: [make_scene(n_objects[i % len(n_objects)], seed, n_frames=args.frames,
+                                    **LAYOUTS[args.layout], **CONDITIONS[name]) for i, seed in enumerate(seeds)]
+                  for name in [c.strip() for c in args.conditions.split(',')]}
+        print(f'# association evaluation: {args.layout} layout, seeds {args.seeds}, {args.objects} objects, '
+              f'{args.frames} frames, {out["machine"]}')
+    print(HEADER)
+    print('|' + '---|' * (HEADER.count('|') - 1))
+    for name, scenes in groups.items():
         for prune in (True,) if args.no_ablation else (True, False):
-            cfg = replace(base, prune=prune)
-            results = [run_scene(make_scene(n_objects[i % len(n_objects)], seed, n_frames=args.frames,
-                                            **LAYOUTS[args.layout], **CONDITIONS[name]), cfg, filt)
-                       for i, seed in enumerate(seeds)]
-            m = summarise(results)
+            m = summarise([run_scene(scene, replace(base, prune=prune), filt) for scene in scenes])
             out['results'][f'{name} / prune={prune}'] = m
-            print(f"| {name} | {'on' if prune else 'off'} | {m['purity']:.3f} | {m['assigned']:.3f} | "
-                  f"{m['completeness']:.3f} | {m['duplicates']} | {m['false_tracks']} | {m['center_err_m']:.3f} | "
-                  f"{m['size_err_m']:.3f} | {m['yaw_err_deg']:.1f} | {m['kept_frac']:.2f} | "
-                  f"{m['kept_vis']:.2f} / {m['pruned_vis']:.2f} | {m['bad_kept_frac']:.3f} | "
-                  f"{m['assoc_ms_mean']:.2f} | {m['refine_ms_mean']:.2f} |", flush=True)
+            print(table_row(name, prune, m), flush=True)
     out['config'] = asdict(base)
     if args.json:
         with open(args.json, 'w') as fh:
