@@ -10,6 +10,7 @@ Frames with missing or invalid camera info / pose / detections are counted, repo
 from __future__ import annotations
 
 import time
+from collections import deque
 from dataclasses import fields
 from typing import Any
 
@@ -47,7 +48,7 @@ class AssociationNode(FrodoNode):
         self.associator = Associator(self.cfg)
         self.cache = FrameCache(('detections', 'pose'), int(p['frame_cache_size']))
         self.waiting: list[int] = []            # complete frames waiting for the first camera info
-        self.latency_ms: list[float] = []
+        self.latency_ms: deque[float] = deque(maxlen=200)   # recent add_frame times
         self.sent_tracks: dict[int, str] = {}   # object id -> class name of the tracks last published
         self.tracks_pub = self.create_publisher(MarkerArray, topics.TRACKS, topics.LATCHED_QOS)
         self.assoc_pub = self.create_publisher(PointCloud2, topics.ASSOCIATIONS, topics.FRAME_QOS)
@@ -160,7 +161,7 @@ class AssociationNode(FrodoNode):
         self.count('tracks_published')
 
     def diagnostic_values(self) -> dict[str, Any]:
-        lat = self.latency_ms[-200:]
+        lat = self.latency_ms
         return {'objects': len(self.associator.confirmed_tracks()), 'clusters': len(self.associator.tracks),
                 'detections': len(self.associator.rows), 'frames_cached': len(self.cache),
                 'frames_unmatched': self.cache.evicted_incomplete,

@@ -58,7 +58,7 @@ import numpy as np
 from scipy.optimize import least_squares, linear_sum_assignment
 
 from frodo_common.categories import category_by_id
-from frodo_common.geometry import invert_transform, yaw_matrix
+from frodo_common.geometry import box_corners, invert_transform
 from frodo_detection.core import instance_boxes
 
 ASSOCIATION_DTYPE = np.dtype([('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('label', '<u2'), ('object_id', '<i4'),
@@ -66,6 +66,7 @@ ASSOCIATION_DTYPE = np.dtype([('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('label'
 """Row of /frodo/associations (docs/ARCHITECTURE.md): object centre (world; NaN when not associated), the
 detection's instance label, object id (-1: not associated), kept (passed pruning), box (x0, y0, x1, y1)."""
 
+# Corner offsets of a unit box, in the corner order of frodo_common.geometry.box_corners.
 _BOX_SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64) / 2
 
 
@@ -287,17 +288,13 @@ def clip_boxes(boxes: np.ndarray, sizes: np.ndarray) -> np.ndarray:
 
 
 def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """IoU of boxes a (..., 4) and b (..., 4), broadcast over the leading axes."""
+    """IoU of boxes a (..., 4) and b (..., 4), broadcast over the leading axes (vectorised
+    `frodo_common.geometry.box_iou_2d`)."""
     ix = np.clip(np.minimum(a[..., 2], b[..., 2]) - np.maximum(a[..., 0], b[..., 0]), 0, None)
     iy = np.clip(np.minimum(a[..., 3], b[..., 3]) - np.maximum(a[..., 1], b[..., 1]), 0, None)
     inter = ix * iy
     union = (a[..., 2] - a[..., 0]) * (a[..., 3] - a[..., 1]) + (b[..., 2] - b[..., 0]) * (b[..., 3] - b[..., 1]) - inter
     return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
-
-
-def upright_box_corners(center: np.ndarray, size: np.ndarray, yaw: float) -> np.ndarray:
-    """Corners (8, 3) of an upright box (same order as frodo_common.geometry.box_corners)."""
-    return (_BOX_SIGNS * size) @ yaw_matrix(yaw).T + center
 
 
 @dataclass
@@ -310,7 +307,7 @@ class Box3D:
 
     def corners(self) -> np.ndarray:
         """(8, 3) world corners."""
-        return upright_box_corners(self.center, self.size, self.yaw)
+        return box_corners(self.center, self.size, self.yaw)
 
 
 def canonical_yaw(size: np.ndarray, yaw: float) -> tuple[np.ndarray, float]:
