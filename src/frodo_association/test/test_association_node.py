@@ -1,6 +1,7 @@
 """The association node in a real rclpy graph: box-world frames in, one /frodo/associations table per frame
-(latest per stamp consistent with the ground truth) and latched /frodo/tracks boxes out; bad input (wrong
-encoding, NaN pose, missing pose) is reported on /diagnostics and survived."""
+(latest per stamp consistent with the ground truth; an empty table for an empty frame) and latched
+/frodo/tracks boxes out; bad input (wrong encoding, NaN pose, missing pose) is reported on /diagnostics and
+survived."""
 import time
 
 import numpy as np
@@ -69,9 +70,15 @@ def test_association_node_end_to_end_and_bad_input():
             det_pub.publish(conv.numpy_to_image(f.instances, '16UC1', f.stamp, 'cam'))
             pose_pub.publish(conv.make_pose_stamped(f.T_world_camera, f.stamp, 'world'))
             executor.spin_once(timeout_sec=0.01)
+        # An empty frame (nothing detected) gives an empty table.
+        last = scene.frames[-1]
+        empty_stamp = last.stamp + 100_000_000
+        det_pub.publish(conv.numpy_to_image(np.zeros_like(last.instances), '16UC1', empty_stamp, 'cam'))
+        pose_pub.publish(conv.make_pose_stamped(last.T_world_camera, empty_stamp, 'world'))
         good = [f0] + scene.frames[3:]
         assert spin_until(lambda: all(f.stamp in assoc for f in good) and status().get('frames_dropped') == '3'
-                          and status().get('frames_published') == str(len(good)))
+                          and status().get('frames_published') == str(len(good) + 1))
+        assert assoc[empty_stamp].width == 0
         assert f1.stamp not in assoc and f2.stamp not in assoc and 1 not in assoc
         st = status()
         assert int(st['errors']) >= 3 and int(st['objects']) == 2
