@@ -31,12 +31,13 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from frodo_association.core import AssociationConfig, Associator, box_iou, canonical_yaw, clip_boxes
-from frodo_association.synthetic import BoxObject, SynthFrame, SynthScene, make_scene
+from frodo_association.synthetic import BoxObject, SynthFrame, SynthScene, make_furniture_scene, make_scene
 from frodo_detection.core import FilterConfig, filter_instances, instance_boxes
 
 LAYOUTS: dict[str, dict] = {
     'walk': {},                                                   # 320x240, ~3.6 m arc of 240 deg, 3.2 m square
     'dense': {'size': (640, 480), 'extent': 2.0, 'radius': 7.5, 'sweep_deg': 90.0},   # many objects, far
+    'furniture': {},                                              # rendered procedural chairs/tables, 640x480
 }
 CONDITIONS: dict[str, dict] = {
     'clean': {},
@@ -241,7 +242,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--objects', default='2-5', help='objects per scene, cycled over the seeds')
     ap.add_argument('--frames', type=int, default=60)
     ap.add_argument('--layout', default='walk', choices=sorted(LAYOUTS),
-                    help="'walk': 240 deg arc at ~3.6 m; 'dense': 4 m square seen from 7.5 m over 90 deg")
+                    help="'walk': boxes, 240 deg arc at ~3.6 m; 'dense': boxes in a 4 m square seen from 7.5 m "
+                         "over 90 deg; 'furniture': the walk with rendered procedural chairs and tables")
     ap.add_argument('--no-ablation', action='store_true', help='only run with pruning on')
     ap.add_argument('--conditions', default=','.join(CONDITIONS), help='comma-separated subset of: '
                     + ', '.join(CONDITIONS))
@@ -259,8 +261,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f'# association evaluation of {len(args.bags)} bag(s), {out["machine"]}')
     else:
         seeds, n_objects = _range(args.seeds), _range(args.objects)
-        groups = {name: [make_scene(n_objects[i % len(n_objects)], seed, n_frames=args.frames,
-                                    **LAYOUTS[args.layout], **CONDITIONS[name]) for i, seed in enumerate(seeds)]
+        make = make_furniture_scene if args.layout == 'furniture' else make_scene
+        groups = {name: [make(n_objects[i % len(n_objects)], seed, n_frames=args.frames,
+                              **LAYOUTS[args.layout], **CONDITIONS[name]) for i, seed in enumerate(seeds)]
                   for name in [c.strip() for c in args.conditions.split(',')]}
         print(f'# association evaluation: {args.layout} layout, seeds {args.seeds}, {args.objects} objects, '
               f'{args.frames} frames, {out["machine"]}')

@@ -1,5 +1,6 @@
 """Box world: upright boxes on a floor seen by a walking camera, rendered as contract instance images
-(numpy/OpenCV, no ROS, no mesh renderer). Used to test and evaluate the association stage (paper Sec. 4.1)
+(numpy/OpenCV, no ROS, no mesh renderer); `make_furniture_scene` does the same walk with procedural furniture
+meshes rendered by `frodo_datasets.render`. Used to test and evaluate the association stage (paper Sec. 4.1)
 with exact ground truth: which object each instance is and how much of it is visible.
 
 A box is convex, so its silhouette is the convex hull of its projected corners; instances are painted far to
@@ -173,3 +174,51 @@ def make_scene(n_objects: int, seed: int, n_frames: int = 60, size: tuple[int, i
         observed = _perturb(T, rng, rot_noise_deg, trans_noise) if (rot_noise_deg or trans_noise) else T.copy()
         frames.append(SynthFrame(int(1e9 + k * 1e9 / fps), K, T, observed, size, instances, gt, vis))
     return SynthScene(objects, frames)
+
+
+def make_furniture_scene(n_objects: int, seed: int, n_frames: int = 60, size: tuple[int, int] = (640, 480),
+                         mask_noise: int = 0, rot_noise_deg: float = 0.0, trans_noise: float = 0.0,
+                         miss_rate: float = 0.0, fps: float = 10.0) -> SynthScene:
+    """Like `make_scene`, with procedural chairs and tables (`frodo_datasets.shapes`) rendered by the
+    `frodo_datasets.render` ray caster instead of boxes: real silhouettes (legs, backs, holes). Ground-truth
+    boxes are the meshes' upright bounding boxes; visibility is not computed (empty)."""
+    from frodo_datasets.render import Renderer, RenderObject
+    from frodo_datasets.shapes import generate
+    from frodo_common.geometry import make_transform, yaw_matrix
+
+    names = {CHAIR: 'chair', TABLE: 'dining table'}
+    rng = np.random.default_rng(seed)
+    objects: list[BoxObject] = []
+    meshes = []
+    for i in range(n_objects):
+        coco = TABLE if i == 0 and rng.random() < 0.6 else CHAIR
+        mesh = generate(names[coco], int(rng.integers(0, 10_000)))
+        ext = np.asarray(mesh.bounding_box.extents, dtype=np.float64)
+        for _ in range(1000):
+            xy = rng.uniform(-1.6, 1.6, 2)
+            if all(np.linalg.norm(xy - o.center[:2]) > 0.5 * np.hypot(*ext[:2]) + 0.5 * np.hypot(*o.size[:2]) + 0.15
+                   for o in objects):
+                break
+        else:
+            raise RuntimeError(f'could not place {n_objects} objects')
+        yaw = float(rng.uniform(-np.pi, np.pi))
+        center = np.array([xy[0], xy[1], ext[2] / 2])
+        mesh = mesh.copy()
+        mesh.apply_transform(make_transform(yaw_matrix(yaw), center - yaw_matrix(yaw) @ mesh.bounding_box.centroid))
+        objects.append(BoxObject(coco, center, ext, yaw))
+        meshes.append(RenderObject(mesh, label=i + 1))
+    renderer = Renderer(meshes)
+    w, h = size
+    K = np.array([[0.9 * w, 0, (w - 1) / 2], [0, 0.9 * w, (h - 1) / 2], [0, 0, 1.0]])
+    codes = np.array([0] + [o.coco_id * 256 + i + 1 for i, o in enumerate(objects)], dtype=np.uint16)
+    frames = []
+    for k, T in enumerate(walk_poses(n_frames, rng)):
+        instances = codes[renderer.render(K, T, w, h, shadows=False).labels]
+        if mask_noise or miss_rate:
+            instances = _noisy_masks(instances, rng, mask_noise, miss_rate)
+        present = set(np.unique(instances).tolist())
+        gt = {int(c): i for i, c in enumerate(codes[1:]) if int(c) in present}
+        observed = _perturb(T, rng, rot_noise_deg, trans_noise) if (rot_noise_deg or trans_noise) else T.copy()
+        frames.append(SynthFrame(int(1e9 + k * 1e9 / fps), K, T, observed, size, instances, gt, {}))
+    return SynthScene(objects, frames)
+
