@@ -80,8 +80,9 @@ def test_missing_weights_error_names_file_and_url(tmp_path):
 
 def test_maskrcnn_wiring_with_random_weights():
     torch.manual_seed(0)
-    model = torchvision.models.detection.maskrcnn_resnet50_fpn_v2(weights=None, weights_backbone=None,
-                                                                   min_size=96, max_size=128)
+    model = torchvision.models.detection.maskrcnn_resnet50_fpn_v2(
+        weights=None, weights_backbone=None, min_size=64, max_size=96, rpn_pre_nms_top_n_test=50,
+        rpn_post_nms_top_n_test=20, box_detections_per_img=5)                 # small and quick on the CPU
     det = MaskRCNNDetector(model=model, score_threshold=0.0, classes=None)
     rgb = np.random.default_rng(0).integers(0, 255, (48, 64, 3), dtype=np.uint8)
     out = det.detect(rgb)
