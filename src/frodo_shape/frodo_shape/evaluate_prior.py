@@ -267,11 +267,11 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--prior', default='furniture')
     ap.add_argument('--heldout', type=int, default=10, help='held-out procedural shapes per class')
-    ap.add_argument('--train-count', type=int, default=5, help='training shapes per class to reconstruct')
+    ap.add_argument('--train-count', type=int, default=5, help='training shapes per class to reconstruct (0: skip)')
     ap.add_argument('--views', type=int, default=3, help='rendered views per held-out shape (encoder)')
-    ap.add_argument('--fit-steps', type=int, default=400)
+    ap.add_argument('--fit-steps', type=int, default=400, help='code optimisation steps per held-out shape (0: skip)')
     ap.add_argument('--resolution', type=int, default=64)
-    ap.add_argument('--threads', type=int, default=2)
+    ap.add_argument('--threads', type=int, default=1)
     ap.add_argument('--cache', default=None, help='SDF sample cache folder')
     ap.add_argument('--out', default=None, help='write the results as JSON here')
     ap.add_argument('--figure', default=None, help='save a CAD-retrieval figure (PNG) here')
@@ -287,10 +287,11 @@ def main(argv: list[str] | None = None) -> int:
     assert not set(s.name for s in held) & set(prior.training_names), 'held-out shapes overlap the training set'
     results['speed'] = measure_speed(prior)
     print('speed', json.dumps(results['speed'], indent=1), flush=True)
-    rows = evaluate_fit(prior, held, args.fit_steps, args.resolution, Path(args.cache) if args.cache else None)
-    results['heldout_fit'] = {'summary': _summary(rows), 'per_class': {c: _summary([r for r in rows if r['class'] == c])
-                                                                       for c in prior.class_names}, 'rows': rows}
-    print('held-out auto-decoder fit', json.dumps(results['heldout_fit']['summary']), flush=True)
+    if args.fit_steps > 0:
+        rows = evaluate_fit(prior, held, args.fit_steps, args.resolution, Path(args.cache) if args.cache else None)
+        results['heldout_fit'] = {'summary': _summary(rows), 'per_class': {
+            c: _summary([r for r in rows if r['class'] == c]) for c in prior.class_names}, 'rows': rows}
+        print('held-out auto-decoder fit', json.dumps(results['heldout_fit']['summary']), flush=True)
     rows = evaluate_training(prior, args.train_count, args.resolution)
     if rows:
         results['training_recon'] = {'summary': _summary(rows), 'rows': rows}
