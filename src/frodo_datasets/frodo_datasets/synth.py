@@ -1,0 +1,217 @@
+"""Render a synthetic scene along a camera trajectory into a contract bag (CONTRACT.md inputs + ground truth).
+
+Topics written (all stamps = frame stamp = log time; frames advance by 1/fps from `start_ns`):
+
+| topic | type | content |
+|---|---|---|
+| `/camera/color/camera_info` | CameraInfo | before the first image and once per frame (plumb_bob, d = 0) |
+| `/camera/color/image_raw` | Image `rgb8` | rendered colour (optionally with pixel noise) |
+| `/camera/pose` | PoseStamped, frame `world` | T_world_camera (optionally noisy; rendering uses the true pose) |
+| `/camera/instances` | Image `16UC1` | `coco_id * 256 + k`, k a random per-frame number (not the object id) |
+| `/camera/aligned_depth_to_color/image_raw` | Image `16UC1` (mm) | only with `depth=True` |
+| `/slam/points` | PointCloud2 x,y,z float32 | noisy landmarks seen in >= `slam_min_views` frames so far; the whole map every `slam_every` frames and at the end |
+| `/ground_truth/objects` | MarkerArray (transient local, depth 1) | one TRIANGLE_LIST per object at the first stamp: ns = class, id = ground-truth id, world vertices |
+
+A JSON sidecar `<bag stem>.gt.json` describes the scene, camera and true poses.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import trimesh
+from visualization_msgs.msg import MarkerArray
+
+from frodo_common import topics
+from frodo_common.bag import BagWriter, qos_yaml
+from frodo_common.conversions import (make_camera_info, make_pose_stamped, mesh_to_marker, numpy_to_image,
+                                      xyz_to_cloud)
+from frodo_common.geometry import invert_transform, project_points
+from frodo_datasets.degrade import MaskNoise, PoseNoise, PoseNoiser, add_image_noise, degrade_instances
+from frodo_datasets.render import Renderer, intrinsics
+from frodo_datasets.scene import Scene, compose_scene, trajectory
+
+DEPTH_TOPIC = '/camera/aligned_depth_to_color/image_raw'
+CAMERA_FRAME = 'camera_color_optical_frame'
+DEFAULT_START_NS = 1_700_000_000_000_000_000  # 2023-11-14T22:13:20Z
+SIDECAR_SUFFIX = '.gt.json'
+
+
+@dataclass
+class SynthConfig:
+    """What to synthesise.
+
+    scene: trajectory and layout, 'walk' (room walk) or 'orbit' (object-centric loop).
+    min_mask_pixels: visible object parts smaller than this are not reported as instances.
+    slam_density: landmarks per m² of object surface (room surfaces get a tenth of it).
+    slam_noise_m: std of the fixed per-landmark position error.
+    """
+
+    scene: str = 'walk'
+    objects: int = 3
+    classes: tuple[str, ...] = ('chair', 'dining table')
+    frames: int = 60
+    width: int = 320
+    height: int = 240
+    seed: int = 0
+    fps: float = 10.0
+    hfov_deg: float = 60.0
+    start_ns: int = DEFAULT_START_NS
+    min_mask_pixels: int = 40
+    mask_noise: MaskNoise = field(default_factory=MaskNoise)
+    pose_noise: PoseNoise = field(default_factory=PoseNoise)
+    image_noise: float = 0.0
+    depth: bool = False
+    slam: bool = True
+    slam_every: int = 5
+    slam_min_views: int = 3
+    slam_density: float = 300.0
+    slam_noise_m: float = 0.01
+    shadows: bool = True
+    world_frame: str = 'world'
+    compression: str = 'zstd'
+
+
+@dataclass
+class SynthResult:
+    """What was written: the scene, true and published poses (lists of (4, 4)), stamps (ns), message counts."""
+
+    path: Path
+    scene: Scene
+    K: np.ndarray
+    stamps: list[int]
+    true_poses: list[np.ndarray]
+    published_poses: list[np.ndarray]
+    counts: dict[str, int]
+
+
+class _Landmarks:
+    """Simulated SLAM map: fixed noisy surface samples that join the map once seen in enough frames."""
+
+    def __init__(self, scene: Scene, density: float, noise: float, rng: np.random.Generator):
+        pts = []
+        for obj in scene.render_objects():
+            rate = density if obj.label else density / 10
+            n = max(1, int(rate * obj.mesh.area))
+            pts.append(trimesh.sample.sample_surface(obj.mesh, n, seed=int(rng.integers(2**31)))[0])
+        self.true = np.concatenate(pts)
+        self.noisy = self.true + rng.normal(0, noise, self.true.shape)
+        self.views = np.zeros(len(self.true), dtype=np.int32)
+
+    def observe(self, K: np.ndarray, T_world_camera: np.ndarray, depth: np.ndarray) -> None:
+        """Count a view for every landmark in the image and not occluded (depth test against `depth` (H, W))."""
+        h, w = depth.shape
+        uv, z = project_points(K, invert_transform(T_world_camera), self.true)
+        ui, vi = np.round(uv[:, 0]).astype(np.int64), np.round(uv[:, 1]).astype(np.int64)
+        inside = (z > 0.1) & (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
+        idx = np.flatnonzero(inside)
+        d = depth[vi[idx], ui[idx]]
+        seen = idx[(d > 0) & (np.abs(d - z[idx]) < 0.01 + 0.02 * z[idx])]
+        self.views[seen] += 1
+
+    def map(self, min_views: int) -> np.ndarray:
+        """Current map points (N, 3)."""
+        return self.noisy[self.views >= min_views]
+
+
+def instance_image(labels: np.ndarray, scene: Scene, rng: np.random.Generator, min_pixels: int) -> np.ndarray:
+    """Contract instance image (H, W) uint16 from a render label image (object ids, 0 = background).
+
+    Objects with fewer than `min_pixels` visible pixels are left out; each kept object gets a random
+    per-frame k in 1..255, so k carries no information about the object's identity.
+    """
+    coco = {o.id: o.coco_id for o in scene.objects}
+    ids, areas = np.unique(labels[labels > 0], return_counts=True)
+    ids = [int(i) for i, a in zip(ids, areas) if a >= min_pixels]
+    ks = rng.choice(np.arange(1, 256), size=len(ids), replace=False)
+    lut = np.zeros(max(coco) + 1, dtype=np.uint16)
+    for obj_id, k in zip(ids, ks):
+        lut[obj_id] = (coco[obj_id] << 8) | int(k)
+    return lut[labels]
+
+
+def ground_truth_markers(scene: Scene, stamp_ns: int, frame_id: str) -> MarkerArray:
+    """One TRIANGLE_LIST marker per object (ns = class name, id = ground-truth id, world vertices)."""
+    markers = []
+    for o in scene.objects:
+        mesh = o.mesh_world
+        markers.append(mesh_to_marker(mesh.vertices, mesh.faces, o.class_name, o.id, stamp_ns, frame_id,
+                                      rgba=(*o.material.color, 1.0)))
+    return MarkerArray(markers=markers)
+
+
+def synthesize(config: SynthConfig, out_path: str | Path, progress: Callable[[int], None] | None = None,
+               sidecar: bool = True) -> SynthResult:
+    """Compose the scene, render every frame and write the contract bag to `out_path`.
+
+    `progress(1)` is called after each frame (e.g. `tqdm.update`). Returns a `SynthResult`.
+    """
+    if config.frames < 1 or config.width < 8 or config.height < 8:
+        raise ValueError('need at least 1 frame and an image of at least 8x8 pixels')
+    out_path = Path(out_path)
+    rng = np.random.default_rng(config.seed)
+    scene = compose_scene(config.objects, config.classes, seed=config.seed, layout=config.scene)
+    poses = trajectory(scene, config.scene, config.frames, seed=config.seed + 1, hfov_deg=config.hfov_deg)
+    K = intrinsics(config.width, config.height, config.hfov_deg)
+    renderer = Renderer(scene.render_objects())
+    landmarks = _Landmarks(scene, config.slam_density, config.slam_noise_m, rng) if config.slam else None
+    noiser = PoseNoiser(config.pose_noise, rng)
+    stamps = [config.start_ns + int(round(k * 1e9 / config.fps)) for k in range(config.frames)]
+    published: list[np.ndarray] = []
+    world, w, h = config.world_frame, config.width, config.height
+    counts: dict[str, int] = {}
+    with BagWriter(out_path, compression=config.compression) as bag:
+        def put(topic: str, msg, stamp_ns: int) -> None:
+            bag.write(topic, msg, stamp_ns)
+            counts[topic] = counts.get(topic, 0) + 1
+
+        bag.add_topic(topics.GROUND_TRUTH, 'visualization_msgs/msg/MarkerArray',
+                      qos_yaml(transient_local=True, depth=1))
+        put(topics.GROUND_TRUTH, ground_truth_markers(scene, stamps[0], world), stamps[0])
+        for k, (stamp, T) in enumerate(zip(stamps, poses)):
+            res = renderer.render(K, T, w, h, shadows=config.shadows, background=(0.82, 0.86, 0.9))
+            rgb = add_image_noise(res.rgb, config.image_noise, rng)
+            instances = instance_image(res.labels, scene, rng, config.min_mask_pixels)
+            if config.mask_noise.active:
+                instances = degrade_instances(instances, config.mask_noise, rng)
+            T_pub = noiser(T) if config.pose_noise.active else T
+            published.append(T_pub)
+            put(topics.CAMERA_INFO, make_camera_info(K, w, h, stamp, CAMERA_FRAME), stamp)
+            put(topics.IMAGE, numpy_to_image(rgb, 'rgb8', stamp, CAMERA_FRAME), stamp)
+            put(topics.POSE, make_pose_stamped(T_pub, stamp, world), stamp)
+            put(topics.INSTANCES, numpy_to_image(instances, '16UC1', stamp, CAMERA_FRAME), stamp)
+            if config.depth:
+                depth_mm = np.clip(np.round(res.depth * 1000), 0, 65535).astype(np.uint16)
+                put(DEPTH_TOPIC, numpy_to_image(depth_mm, '16UC1', stamp, CAMERA_FRAME), stamp)
+            if landmarks is not None:
+                landmarks.observe(K, T, res.depth)
+                if (k + 1) % config.slam_every == 0 or k == config.frames - 1:
+                    points = landmarks.map(config.slam_min_views)
+                    if len(points):
+                        put(topics.SLAM_POINTS, xyz_to_cloud(points, stamp, world), stamp)
+            if progress is not None:
+                progress(1)
+    if sidecar:
+        write_sidecar(sidecar_path(out_path), config, scene, K, stamps, poses, published)
+    return SynthResult(out_path, scene, K, stamps, poses, published, counts)
+
+
+def sidecar_path(bag_path: str | Path) -> Path:
+    """`scene.mcap` -> `scene.gt.json`."""
+    bag_path = Path(bag_path)
+    return bag_path.with_name(bag_path.stem + SIDECAR_SUFFIX)
+
+
+def write_sidecar(path: Path, config: SynthConfig, scene: Scene, K: np.ndarray, stamps: list[int],
+                  true_poses: list[np.ndarray], published: list[np.ndarray]) -> None:
+    """Ground-truth JSON: generation config, scene (objects, poses, shapes), intrinsics, per-frame poses."""
+    doc = {
+        'config': asdict(config), 'scene': scene.to_dict(),
+        'camera': {'K': K.tolist(), 'width': config.width, 'height': config.height, 'frame_id': CAMERA_FRAME},
+        'frames': [{'stamp_ns': s, 'T_world_camera': T.tolist(), 'T_world_camera_published': P.tolist()}
+                   for s, T, P in zip(stamps, true_poses, published)],
+    }
+    path.write_text(json.dumps(doc, indent=1) + '\n')
