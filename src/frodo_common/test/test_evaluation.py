@@ -54,8 +54,8 @@ def test_shifted_cube_matches_analytic_surface_distance():
     within = (4 * (1 - d + 0.05) + 1 - (1 - 0.1) ** 2) / 6  # area fraction within 5 cm
     p = evaluate([EvalObject(1, 'chair', _box((d, 0, 0)))], [EvalObject(2, 'chair', _box())]).pairs[0]
     # Sample-to-sample distances exceed point-to-surface ones by the sample spacing (< 1 cm for 10k points).
-    assert expected < p.accuracy_m < expected + 0.008
-    assert p.completion_m == pytest.approx(p.accuracy_m, abs=0.002)  # symmetric configuration
+    assert expected < p.accuracy_m < expected + 0.01
+    assert expected < p.completion_m < expected + 0.01  # symmetric configuration
     assert p.acc == pytest.approx(100 * within, abs=2.0)
     assert p.f1 == pytest.approx(100 * within, abs=2.0)
 
