@@ -71,9 +71,9 @@ def _to_training(records) -> list[TrainingShape]:
     out = []
     for r in records:
         mesh, scale = normalise(r.mesh)
-        seed = getattr(r, 'seed', None)
+        seed = getattr(r, 'seed', None)  # user meshes carry seed -1
         out.append(TrainingShape(r.name, r.class_name, str(getattr(r, 'family', '') or ''), float(scale), mesh,
-                                 None if seed is None else int(seed)))
+                                 None if seed is None or int(seed) < 0 else int(seed)))
     return out
 
 
@@ -83,10 +83,15 @@ def library_shapes(classes: list[str], count: int, seed: int) -> list[TrainingSh
     return _to_training([r for c in classes for r in library(c, count, seed=seed)])
 
 
-def user_shapes(root: str | Path, class_name: str | None, up_axis: str = 'y', front_axis: str = '-z') -> list[TrainingShape]:
-    """The user's meshes (ShapeNet layout or a plain folder) via `frodo_datasets.shapes.load_user_meshes`."""
+def user_shapes(root: str | Path, class_name: str | None, up_axis: str = 'y', front_axis: str = '-z',
+                target_height: float | None = None) -> list[TrainingShape]:
+    """The user's meshes (ShapeNet layout or a plain folder) via `frodo_datasets.shapes.load_user_meshes`.
+
+    target_height: metres to rescale each mesh's height to (ShapeNet models are not metric); None keeps units.
+    """
     from frodo_datasets.shapes import load_user_meshes
-    records = load_user_meshes(root, class_name=class_name, up_axis=up_axis, front_axis=front_axis)
+    records = load_user_meshes(root, class_name=class_name, up_axis=up_axis, front_axis=front_axis,
+                               target_height=target_height)
     if not records:
         raise FileNotFoundError(f'no meshes found under {root} (expected ShapeNet <synset>/<id>/models/model_normalized.obj '
                                 'or a folder of .obj/.ply/.stl/.off/.glb files)')
@@ -97,7 +102,8 @@ def training_shapes(config: dict, meshes: str | None = None, class_name: str | N
     """The shapes a decoder config trains on (`data:` section), or the user's meshes when `meshes` is given."""
     data = config.get('data', {})
     if meshes:
-        return user_shapes(meshes, class_name, data.get('up_axis', 'y'), data.get('front_axis', '-z'))
+        return user_shapes(meshes, class_name, data.get('up_axis', 'y'), data.get('front_axis', '-z'),
+                           data.get('target_height'))
     return library_shapes(list(data.get('classes', ['chair', 'dining table'])), int(data.get('shapes_per_class', 100)),
                           int(data.get('library_seed', 0)))
 

@@ -121,3 +121,19 @@ def test_cli_parses_both_stages(tmp_path):
     assert cli_train.run(parser.parse_args(['decoder', '--out', str(tmp_path), '--config', 'nope'])) == 2
     with pytest.raises(SystemExit):
         parser.parse_args(['decoder'])
+
+
+def test_decoder_trains_on_a_folder_of_user_meshes_via_the_cli(tmp_path):
+    meshes = tmp_path / 'my_stools'
+    meshes.mkdir()
+    for shape in _shapes():
+        shape.mesh.export(meshes / f'{shape.name}.obj')
+    cfg = tmp_path / 'tiny.yaml'
+    cfg.write_text(yaml.safe_dump(TINY_DECODER))
+    out = tmp_path / 'prior'
+    assert cli_train.main(['decoder', '--config', str(cfg), '--out', str(out), '--steps', '3', '--quiet',
+                           '--meshes', str(meshes), '--class', 'chair', '--device', 'cpu']) == 0
+    prior = ShapePrior.load(out)
+    assert sorted(prior.training_classes) == ['chair'] * 3 and len(prior.training_names) == 3
+    assert all(s['seed'] is None for s in prior.training_shapes)
+    assert cli_train.main(['decoder', '--config', str(cfg), '--out', str(out), '--meshes', str(meshes)]) == 2
