@@ -31,7 +31,7 @@ from frodo_common.conversions import (make_camera_info, make_pose_stamped, mesh_
                                       xyz_to_cloud)
 from frodo_common.geometry import invert_transform, project_points
 from frodo_datasets.degrade import MaskNoise, PoseNoise, PoseNoiser, add_image_noise, degrade_instances
-from frodo_datasets.render import Renderer, intrinsics
+from frodo_datasets.render import Light, Renderer, intrinsics
 from frodo_datasets.scene import Scene, compose_scene, trajectory
 
 DEPTH_TOPIC = '/camera/aligned_depth_to_color/image_raw'
@@ -46,7 +46,7 @@ class SynthConfig:
 
     scene: trajectory and layout, 'walk' (room walk) or 'orbit' (object-centric loop).
     min_mask_pixels: visible object parts smaller than this are not reported as instances.
-    slam_density: landmarks per m² of object surface (room surfaces get a tenth of it).
+    slam_density: landmarks per m² of object surface (room surfaces get a twentieth of it).
     slam_noise_m: std of the fixed per-landmark position error.
     """
 
@@ -94,7 +94,7 @@ class _Landmarks:
     def __init__(self, scene: Scene, density: float, noise: float, rng: np.random.Generator):
         pts = []
         for obj in scene.render_objects():
-            rate = density if obj.label else density / 10
+            rate = density if obj.label else density / 20
             n = max(1, int(rate * obj.mesh.area))
             pts.append(trimesh.sample.sample_surface(obj.mesh, n, seed=int(rng.integers(2**31)))[0])
         self.true = np.concatenate(pts)
@@ -157,6 +157,9 @@ def synthesize(config: SynthConfig, out_path: str | Path, progress: Callable[[in
     poses = trajectory(scene, config.scene, config.frames, seed=config.seed + 1, hfov_deg=config.hfov_deg)
     K = intrinsics(config.width, config.height, config.hfov_deg)
     renderer = Renderer(scene.render_objects())
+    elevation, azimuth = rng.uniform(np.radians(45), np.radians(70)), rng.uniform(0, 2 * np.pi)
+    light = Light(direction=(-np.cos(elevation) * np.cos(azimuth), -np.cos(elevation) * np.sin(azimuth),
+                             -np.sin(elevation)), intensity=0.7)
     landmarks = _Landmarks(scene, config.slam_density, config.slam_noise_m, rng) if config.slam else None
     noiser = PoseNoiser(config.pose_noise, rng)
     stamps = [config.start_ns + int(round(k * 1e9 / config.fps)) for k in range(config.frames)]
@@ -172,7 +175,7 @@ def synthesize(config: SynthConfig, out_path: str | Path, progress: Callable[[in
                       qos_yaml(transient_local=True, depth=1))
         put(topics.GROUND_TRUTH, ground_truth_markers(scene, stamps[0], world), stamps[0])
         for k, (stamp, T) in enumerate(zip(stamps, poses)):
-            res = renderer.render(K, T, w, h, shadows=config.shadows, background=(0.82, 0.86, 0.9))
+            res = renderer.render(K, T, w, h, light=light, shadows=config.shadows, background=(0.82, 0.86, 0.9))
             rgb = add_image_noise(res.rgb, config.image_noise, rng)
             instances = instance_image(res.labels, scene, rng, config.min_mask_pixels)
             if config.mask_noise.active:
