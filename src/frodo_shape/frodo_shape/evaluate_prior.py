@@ -116,8 +116,8 @@ def heldout_views(shapes: list[TrainingShape], views: int, seed: int = 1234, siz
     return out
 
 
-def evaluate_encoder(prior: ShapePrior, shapes: list[TrainingShape], views: int, resolution: int = 64) -> tuple[list[dict], list]:
-    """Single-view reconstruction of held-out shapes from rendered crops: per-view metrics (+ the crops)."""
+def evaluate_encoder(prior: ShapePrior, shapes: list[TrainingShape], views: int, resolution: int = 64) -> list[dict]:
+    """Single-view reconstruction of held-out shapes from rendered crops: per-view metrics."""
     data = heldout_views(shapes, views)
     codes = prior.encode(np.stack([d[1] for d in data]), np.stack([d[2] for d in data]))
     rows = []
@@ -127,7 +127,7 @@ def evaluate_encoder(prior: ShapePrior, shapes: list[TrainingShape], views: int,
         rows.append({'name': s.name, 'class': s.class_name,
                      **surface_metrics(_metric(mesh, s.scale), _metric(s.mesh, s.scale)),
                      'voxel_iou': voxel_iou(prior, code, s.mesh)})
-    return rows, list(zip(data, codes))
+    return rows
 
 
 def measure_speed(prior: ShapePrior, repeats: int = 5) -> dict:
@@ -215,7 +215,7 @@ def compare_point_decoders(prior: ShapePrior, variants=('small', 'paper'), steps
     with the prior's (frozen) training codes, same steps and batch; returns per variant the parameter count,
     ms per training step, and the final chamfer (CD as in `surface_metrics`, cm at metric scale)."""
     from frodo_datasets.shapes import generate, normalise
-    from frodo_shape.models import POINT_DECODER_VARIANTS, PointDecoder
+    from frodo_shape.models import POINT_DECODER_VARIANTS, PointDecoder, count_parameters
     from frodo_shape.train import chamfer
     idx = [i for i, s in enumerate(prior.training_shapes) if s.get('seed') is not None]
     surf = torch.stack([torch.from_numpy(trimesh.sample.sample_surface(
@@ -244,7 +244,7 @@ def compare_point_decoders(prior: ShapePrior, variants=('small', 'paper'), steps
                 d_pg, _ = cKDTree(g.numpy()).query(p.numpy())
                 d_gp, _ = cKDTree(p.numpy()).query(g.numpy())
                 cds.append(50 * float(s) * (d_pg.mean() + d_gp.mean()))
-        out[v] = {'parameters': sum(p.numel() for p in net.parameters()), 'ms_per_step': ms,
+        out[v] = {'parameters': count_parameters(net), 'ms_per_step': ms,
                   'cd_cm_median': float(np.median(cds)), 'cd_cm_mean': float(np.mean(cds)), 'steps': steps,
                   'batch': batch}
     return out
@@ -297,7 +297,7 @@ def main(argv: list[str] | None = None) -> int:
         results['training_recon'] = {'summary': _summary(rows), 'rows': rows}
         print('training reconstruction', json.dumps(results['training_recon']['summary']), flush=True)
     if prior.encoder is not None and args.views > 0:
-        rows, _ = evaluate_encoder(prior, held, args.views, args.resolution)
+        rows = evaluate_encoder(prior, held, args.views, args.resolution)
         results['heldout_single_view'] = {'summary': _summary(rows), 'per_class': {
             c: _summary([r for r in rows if r['class'] == c]) for c in prior.class_names}, 'rows': rows}
         print('held-out single view', json.dumps(results['heldout_single_view']['summary']), flush=True)

@@ -21,6 +21,7 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
+
 import numpy as np
 import torch
 import trimesh
