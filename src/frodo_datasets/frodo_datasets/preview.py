@@ -95,7 +95,7 @@ def save_preview(bag: str | Path, out: str | Path, frames: int = 4) -> Path:
     fig.tight_layout()
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
+    fig.savefig(out, dpi=90)
     plt.close(fig)
     return out
 
