@@ -133,3 +133,24 @@ def test_ground_truth_from_bag(tmp_path):
     assert np.allclose(gt[0].mesh.bounds, box.bounds)
     r = evaluate([EvalObject(1, 'chair', box)], gt)
     assert r.pairs[0].cd_cm == pytest.approx(0.0, abs=1e-6)
+
+
+def test_eval_command(tmp_path, capsys):
+    cli_eval = pytest.importorskip('frodo_bringup.cli_eval')
+    pred, gt = tmp_path / 'pred', tmp_path / 'gt'
+    (pred / 'meshes').mkdir(parents=True)
+    gt.mkdir()
+    _box((0.01, 0, 0)).export(pred / 'meshes' / '1_chair.ply')
+    _box().export(gt / '7_chair.ply')
+    _box((3, 0, 0)).export(gt / '8_dining_table.ply')
+    (pred / 'objects.json').write_text(json.dumps({'objects': [{'id': 1, 'class': 'chair',
+                                                                 'mesh': 'meshes/1_chair.ply'}]}))
+    assert cli_eval.main(['--pred', str(pred), '--gt', str(gt), '--samples', '2000']) == 0
+    out = capsys.readouterr().out
+    assert 'overall' in out and 'missed ground truth ids: [8]' in out
+    report = json.loads((pred / 'eval.json').read_text())
+    assert report['overall']['recall'] == 50.0 and report['pairs'][0]['gt_id'] == 7
+    assert cli_eval.main(['--pred', str(pred), '--gt', str(gt), '--classes', 'chair',
+                          '--json', str(tmp_path / 'chair.json')]) == 0
+    assert json.loads((tmp_path / 'chair.json').read_text())['overall']['recall'] == 100.0
+    assert cli_eval.main(['--pred', str(tmp_path / 'nothing'), '--gt', str(gt)]) == 1
