@@ -123,7 +123,8 @@ def test_ground_truth_from_bag(tmp_path):
     sphere = _sphere(0.3)
     path = tmp_path / 'gt.mcap'
     with BagWriter(path) as bag:
-        bag.add_topic('/ground_truth/objects', 'visualization_msgs/msg/MarkerArray', qos_yaml(transient_local=True, depth=1))
+        bag.add_topic('/ground_truth/objects', 'visualization_msgs/msg/MarkerArray',
+                      qos_yaml(transient_local=True, depth=1))
         bag.write('/ground_truth/objects', MarkerArray(markers=[
             mesh_to_marker(box.vertices, box.faces, 'chair', 3, 10, 'world'),
             mesh_to_marker(sphere.vertices, sphere.faces, 'dining table', 8, 10, 'world'),

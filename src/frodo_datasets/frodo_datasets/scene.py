@@ -92,7 +92,7 @@ class Scene:
 
 
 # ---------------------------------------------------------------- placement
-def _rects_overlap(a: np.ndarray, b: np.ndarray, clearance: float) -> bool:
+def footprints_overlap(a: np.ndarray, b: np.ndarray, clearance: float) -> bool:
     """Separating-axis test of two convex quads (4, 2), each grown by `clearance` along every axis."""
     for quad in (a, b):
         for i in range(4):
@@ -176,7 +176,7 @@ def compose_scene(n_objects: int = 3, classes: Sequence[str] = ('chair', 'dining
             T = make_transform(yaw_matrix(yaw), (xy[0], xy[1], -mesh.bounds[0, 2]))
             obj = SceneObject(i + 1, name, category_by_name(name).coco_id, mesh, T,
                               Material.random(rng), family, shape_seed)
-            if not any(_rects_overlap(obj.footprint, o.footprint, clearance) for o in placed.values()):
+            if not any(footprints_overlap(obj.footprint, o.footprint, clearance) for o in placed.values()):
                 placed[i] = obj
                 break
         else:

@@ -4,7 +4,7 @@ import pytest
 
 from frodo_common.geometry import invert_transform, project_points
 from frodo_datasets.render import Renderer, intrinsics
-from frodo_datasets.scene import _rects_overlap, compose_scene, orbit_trajectory, trajectory, walk_trajectory
+from frodo_datasets.scene import footprints_overlap, compose_scene, orbit_trajectory, trajectory, walk_trajectory
 
 
 @pytest.fixture(scope='module')
@@ -29,7 +29,7 @@ def test_objects_stand_on_the_floor_without_overlap(walk_scene):
         assert o.T_world_object[2, 3] == pytest.approx(o.mesh.extents[2] / 2)
     for i, a in enumerate(scene.objects):
         for b in scene.objects[i + 1:]:
-            assert not _rects_overlap(a.footprint, b.footprint, 0.0)
+            assert not footprints_overlap(a.footprint, b.footprint, 0.0)
 
 
 def test_deterministic(walk_scene):
