@@ -246,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
                          "over 90 deg; 'furniture': the walk with rendered procedural chairs and tables")
     ap.add_argument('--no-ablation', action='store_true', help='only run with pruning on')
     ap.add_argument('--conditions', default=','.join(CONDITIONS), help='comma-separated subset of: '
-                    + ', '.join(CONDITIONS))
+                    + ', '.join(CONDITIONS).replace('%', '%%'))
     ap.add_argument('--json', help='also write the results as JSON')
     args = ap.parse_args(argv)
     filt = FilterConfig()
