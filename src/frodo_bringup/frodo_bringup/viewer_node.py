@@ -31,8 +31,8 @@ PARAMS = (
 class ViewerNode(FrodoNode):
     """Logs every FroDO topic to Rerun on a `stamp` timeline (seconds) and a `frame` sequence."""
 
-    def __init__(self):
-        super().__init__('viewer_node', PARAMS)
+    def __init__(self, **kwargs):
+        super().__init__('viewer_node', PARAMS, **kwargs)
         rr.init('frodo')
         mode = self.params['mode']
         if mode == 'save':

@@ -40,8 +40,8 @@ CLASS_COLOURS = {'chair': (0.95, 0.55, 0.15, 1.0), 'dining table': (0.2, 0.6, 0.
 class OptimNode(FrodoNode):
     """Keeps a pending set of objects whose inputs changed; a worker thread reconstructs them one by one."""
 
-    def __init__(self):
-        super().__init__('optim_node', PARAMS)
+    def __init__(self, **kwargs):
+        super().__init__('optim_node', PARAMS, **kwargs)
         self.prior = ShapePrior.load(self.params['prior'], device=self.params['device'])
         self.tracks: dict[int, tuple[str, tuple]] = {}             # id -> (class, (centre, size, yaw))
         self.codes: dict[int, tuple[int, int, np.ndarray]] = {}     # id -> (category, views, code)
@@ -73,7 +73,11 @@ class OptimNode(FrodoNode):
                     self.tracks.pop(m.id, None)
                     self.pending.add(m.id)
                 elif m.type == Marker.CUBE:
-                    box = conv.marker_to_box(m)
+                    try:  # one bad box must not drop the others of the array
+                        box = conv.marker_to_box(m)
+                    except conv.ConversionError as err:
+                        self.report_error('tracks', f'object {m.id}: {err}')
+                        continue
                     if np.all(np.isfinite(box[0])) and np.all(np.isfinite(box[1])) and np.all(box[1] > 0):
                         self.tracks[m.id] = (m.ns, box)
                         self.pending.add(m.id)

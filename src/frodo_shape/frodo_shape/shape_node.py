@@ -38,8 +38,8 @@ OBJECT_CODES_DTYPE = np.dtype([('object_id', '<i4'), ('category', '<u2'), ('num_
 class ShapeNode(FrodoNode):
     """Encodes detections as they are associated and republishes the fused code of every object."""
 
-    def __init__(self):
-        super().__init__('shape_node', PARAMS)
+    def __init__(self, **kwargs):
+        super().__init__('shape_node', PARAMS, **kwargs)
         self.prior = ShapePrior.load(self.params['prior'], device=self.params['device'])
         if self.params['fusion'] not in ('mean', 'vote'):
             raise ValueError(f"fusion must be 'mean' or 'vote', got {self.params['fusion']!r}")
