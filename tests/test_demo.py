@@ -22,7 +22,7 @@ def test_demo_reconstructs_and_scores_the_demo_bag(tmp_path, capsys):
     assert code == EXIT_OK, printed
     objects = json.loads((out / 'objects.json').read_text())['objects']
     assert objects and all((out / o['mesh']).is_file() for o in objects)
-    assert (out / 'frodo.rrd').stat().st_size > 0
+    assert (out / 'frodo.rrd').stat().st_size > 0 and (out / 'result.png').stat().st_size > 0
     report = json.loads((out / 'eval.json').read_text())
     n_gt = len(load_ground_truth(BAG))
     overall = report['overall']

@@ -4,7 +4,8 @@
     frodo demo --bag bags/demo_orbit.mcap --out out/orbit
 
 One `frodo run` (graph + Rerun recording `DIR/frodo.rrd`), then `frodo eval` of `DIR` against the
-bag's `/ground_truth/objects` with the CONTRACT.md protocol; the report goes to `DIR/eval.json`.
+bag's `/ground_truth/objects` with the CONTRACT.md protocol; the report goes to `DIR/eval.json`, a
+top/front view of prediction vs ground truth to `DIR/result.png`.
 `--synth SEED` renders a fresh walk scene first (`frodo synth`), so the demo also runs on a scene
 nobody tuned on.
 """
@@ -17,6 +18,7 @@ from pathlib import Path
 
 from frodo_bringup.graph import GraphError
 from frodo_bringup.player import PlayerError
+from frodo_bringup.result_figure import draw_result
 from frodo_bringup.run import EXIT_OK, RECORDING_FILE, run_bag
 from frodo_bringup.session import stop_on_signals
 from frodo_common.evaluation import EvaluationError, evaluate, load_ground_truth, load_predictions
@@ -24,6 +26,7 @@ from frodo_common.evaluation import EvaluationError, evaluate, load_ground_truth
 DEFAULT_BAG = Path('bags/demo_walk.mcap')
 DEFAULT_OUT = Path('out/demo')
 EVAL_FILE = 'eval.json'
+FIGURE_FILE = 'result.png'
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -71,16 +74,18 @@ def run(args: argparse.Namespace) -> int:
             print(f'frodo demo: error: {err}', file=sys.stderr)
             return 2
     try:
-        report = evaluate(load_predictions(args.out), load_ground_truth(bag))
+        pred, gt = load_predictions(args.out), load_ground_truth(bag)
     except EvaluationError as err:
         print(f'frodo demo: evaluation failed: {err}', file=sys.stderr)
         return result.exit_code or 1
+    report = evaluate(pred, gt)
     print(f'\nevaluation against the ground truth of {bag} (CONTRACT.md protocol):')
     print(report.table())
     payload = report.to_dict()
     payload['inputs'] = {'pred': str(args.out), 'gt': str(bag)}
     (args.out / EVAL_FILE).write_text(json.dumps(payload, indent=2) + '\n')
-    print(f'report: {args.out / EVAL_FILE}')
+    figure = draw_result(pred, gt, report, args.out / FIGURE_FILE, title=bag.name)
+    print(f'report: {args.out / EVAL_FILE}, picture: {figure}')
     if not args.no_viewer and result.exit_code == EXIT_OK:
         print(f'view it: rerun {args.out / RECORDING_FILE}')
     return result.exit_code
