@@ -19,9 +19,21 @@ from scipy.ndimage import find_objects
 
 from frodo_common.categories import split_instance_label
 
+REFERENCE_SIZE = (640, 480)
+"""Image size (width, height) at which the pixel thresholds of `FilterConfig` and of the association's
+`AssociationConfig` are given; other resolutions scale them (`resolution_scale`)."""
+
 MASKRCNN_CHECKPOINT = 'maskrcnn_resnet50_fpn_v2_coco-73cbd019.pth'
 MASKRCNN_URL = f'https://download.pytorch.org/models/{MASKRCNN_CHECKPOINT}'
 FRAGMENT_POLICIES = ('keep', 'largest', 'drop')
+
+
+def resolution_scale(width: float, height: float) -> float:
+    """Length scale of an image of (width, height) relative to REFERENCE_SIZE: sqrt(W * H / (640 * 480)).
+
+    Pixel lengths given at the reference resolution are multiplied by it, pixel areas by its square, so a
+    threshold keeps its meaning as a fraction of the image (0.5 at 320x240, 2 at 1280x960)."""
+    return float(np.sqrt(width * height / (REFERENCE_SIZE[0] * REFERENCE_SIZE[1])))
 
 
 class WeightsNotFoundError(FileNotFoundError):
@@ -30,12 +42,17 @@ class WeightsNotFoundError(FileNotFoundError):
 
 @dataclass(frozen=True)
 class FilterConfig:
-    """Which instances of a frame are kept (all thresholds in pixels unless noted).
+    """Which instances of a frame are kept.
+
+    Size thresholds are in pixels of a 640x480 image (REFERENCE_SIZE) and scale with the image size: at
+    W x H, lengths by s = sqrt(W * H / (640 * 480)) and areas by s^2 (`resolution_scale`), e.g. at 320x240
+    min_area 400 -> 100 px and min_box_side 16 -> 8 px.
 
     classes: COCO ids kept; None keeps every class.
-    min_area: instances with fewer mask pixels are dropped (tiny, unreliable detections).
-    min_box_side: instances whose box is narrower or lower than this are dropped.
-    drop_truncated: drop instances whose mask comes within `border_margin` pixels of the image border.
+    min_area: instances with fewer mask pixels (at 640x480) are dropped (tiny, unreliable detections).
+    min_box_side: instances whose box is narrower or lower than this (pixels at 640x480) are dropped.
+    drop_truncated: drop instances whose mask comes within `border_margin` pixels of the image border
+        (plain pixels, not scaled).
     min_fragment_fraction: connected components smaller than this fraction of the instance's area are
         removed as specks (0 keeps every component).
     fragment_policy: instances still in several pieces after speck removal: 'keep' all pieces,
@@ -107,7 +124,7 @@ def _clean_fragments(mask: np.ndarray, cfg: FilterConfig) -> np.ndarray | None:
 
 
 def filter_instances(instances: np.ndarray, cfg: FilterConfig) -> tuple[np.ndarray, list[Detection]]:
-    """Apply the instance filters of `cfg` to an instance image.
+    """Apply the instance filters of `cfg` to an instance image (size thresholds scaled to its resolution).
 
     instances: (H, W) uint16 contract instance image. Returns (filtered (H, W) uint16 image with the
     dropped instances and specks set to 0 and kept pixel values unchanged, kept detections sorted by label).
@@ -117,6 +134,8 @@ def filter_instances(instances: np.ndarray, cfg: FilterConfig) -> tuple[np.ndarr
     h, w = instances.shape
     out = np.zeros_like(instances)
     detections: list[Detection] = []
+    scale = resolution_scale(w, h)
+    min_area, min_side = max(cfg.min_area * scale ** 2, 1), cfg.min_box_side * scale
     labels, boxes, _ = instance_boxes(instances)
     for label, box in zip(labels, boxes):
         coco_id, _ = split_instance_label(label)
@@ -130,10 +149,10 @@ def filter_instances(instances: np.ndarray, cfg: FilterConfig) -> tuple[np.ndarr
                 continue
         rows, cols = np.nonzero(crop)
         area = len(rows)
-        if area < max(cfg.min_area, 1):
+        if area < min_area:
             continue
         bbox = mask_box(rows + r0, cols + c0)
-        if min(bbox[2] - bbox[0], bbox[3] - bbox[1]) < cfg.min_box_side:
+        if min(bbox[2] - bbox[0], bbox[3] - bbox[1]) < min_side:
             continue
         m = cfg.border_margin
         truncated = bbox[0] < m or bbox[1] < m or bbox[2] > w - m or bbox[3] > h - m

@@ -30,8 +30,10 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec('backend', 'external', "Where masks come from: 'external' (/camera/instances) or 'maskrcnn' "
               '(torchvision Mask R-CNN on each image).'),
     ParamSpec('classes', _DEFAULT_CLASS_IDS, 'COCO category ids kept (62 chair, 63 couch, 65 bed, 67 dining table).'),
-    ParamSpec('min_area', 400, 'Instances with fewer mask pixels are dropped.'),
-    ParamSpec('min_box_side', 16, 'Instances whose box is narrower or lower than this (pixels) are dropped.'),
+    ParamSpec('min_area', 400, 'Instances with fewer mask pixels are dropped (pixels at 640x480; scaled by '
+              'W*H/(640*480) at other resolutions).'),
+    ParamSpec('min_box_side', 16, 'Instances whose box is narrower or lower than this are dropped (pixels at '
+              '640x480; scaled by sqrt(W*H/(640*480)) at other resolutions).'),
     ParamSpec('drop_truncated', False, 'Drop instances touching the image border (truncated objects).'),
     ParamSpec('border_margin', 2, 'Distance to the border (pixels) below which an instance counts as truncated.'),
     ParamSpec('min_fragment_fraction', 0.05, 'Mask components smaller than this fraction of the instance area '

@@ -6,7 +6,8 @@ import torch
 import torchvision
 
 from frodo_detection.core import (MASKRCNN_URL, FilterConfig, MaskRCNNDetector, WeightsNotFoundError,
-                                  filter_instances, instance_boxes, masks_to_instances, resolve_weights)
+                                  filter_instances, instance_boxes, masks_to_instances, resolution_scale,
+                                  resolve_weights)
 
 CHAIR, TABLE, PERSON = 62, 67, 1
 
@@ -34,18 +35,38 @@ def test_instance_boxes_pixel_edges():
 
 
 def test_filter_drops_tiny_foreign_and_truncated():
-    img = _scene()
-    out, dets = filter_instances(img, FilterConfig(classes=(CHAIR, TABLE), min_area=100))
+    img = _scene()     # 160x120: 1/16 of the 640x480 reference pixels, so min_area 1600 means 100 px here
+    out, dets = filter_instances(img, FilterConfig(classes=(CHAIR, TABLE), min_area=1600))
     assert sorted(d.label for d in dets) == [_label(CHAIR, 1), _label(CHAIR, 5), _label(TABLE, 2)]
     assert set(np.unique(out)) == {0, _label(CHAIR, 1), _label(CHAIR, 5), _label(TABLE, 2)}
     chair = next(d for d in dets if d.label == _label(CHAIR, 1))
     assert chair.bbox == (29.5, 19.5, 69.5, 59.5) and chair.area == 1600 and not chair.truncated
     assert next(d for d in dets if d.label == _label(CHAIR, 5)).truncated
-    out, dets = filter_instances(img, FilterConfig(classes=(CHAIR, TABLE), min_area=100, drop_truncated=True))
+    out, dets = filter_instances(img, FilterConfig(classes=(CHAIR, TABLE), min_area=1600, drop_truncated=True))
     assert sorted(d.label for d in dets) == [_label(CHAIR, 1), _label(TABLE, 2)]
     assert not np.any(out == _label(CHAIR, 5))
     _, dets = filter_instances(img, FilterConfig(classes=None, min_area=1, min_box_side=1))
     assert len(dets) == 5
+
+
+def test_size_thresholds_scale_with_the_resolution():
+    assert resolution_scale(640, 480) == 1.0 and resolution_scale(320, 240) == 0.5
+    assert resolution_scale(1280, 960) == 2.0
+    # A thin stool at 320x240: 10 px wide, 30 px high, 250 mask pixels. The defaults (400 px area, 16 px side
+    # at 640x480) mean 100 px and 8 px here, so it is kept; the same stool at 640x480 (20 x 60 px, 1000 px)
+    # is kept too, and a 12 x 12 px blob at 640x480 (below 16 px) is dropped at either size.
+    small = np.zeros((240, 320), np.uint16)
+    small[100:130, 150:160] = _label(CHAIR, 1)
+    small[100:125:5, 150:160] = 0             # slats: 250 of the 300 box pixels are set
+    small[10:16, 10:16] = _label(CHAIR, 2)    # 6 x 6 px here = 12 x 12 px at 640x480
+    _, dets = filter_instances(small, FilterConfig())
+    assert [d.label for d in dets] == [_label(CHAIR, 1)] and dets[0].area == 250
+    big = np.kron(small, np.ones((2, 2), np.uint16))
+    _, dets = filter_instances(big, FilterConfig())
+    assert [d.label for d in dets] == [_label(CHAIR, 1)] and dets[0].area == 1000
+    # Absolute thresholds would have dropped the stool at 320x240 (area 250 < 400).
+    _, dets = filter_instances(small, FilterConfig(min_area=4 * 400))
+    assert dets == []
 
 
 def test_fragments_specks_and_policies():

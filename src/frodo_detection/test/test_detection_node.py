@@ -99,8 +99,9 @@ class _StubDetector:
 def test_maskrcnn_backend_runs_the_detector_on_every_image(graph):
     add, pubs, got, spin_until = graph
     detector = _StubDetector()
+    # min_area is given at 640x480: 10000 there is 100 px in this 64x48 image.
     add(DetectionNode(detector=detector, parameter_overrides=[Parameter('backend', value='maskrcnn'),
-                                                              Parameter('min_area', value=100)]))
+                                                              Parameter('min_area', value=10000)]))
     rgb = np.random.default_rng(0).integers(0, 255, (48, 64, 3), dtype=np.uint8)
     pubs['image'].publish(conv.numpy_to_image(rgb, 'bgr8', 5000, 'cam'))
     pubs['image'].publish(conv.numpy_to_image(rgb, 'rgb8', 6000, 'cam'))
