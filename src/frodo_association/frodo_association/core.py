@@ -27,6 +27,20 @@ object, the one nearer the centre keeps it and the other is ignored (object id -
 lambda of a centre that a closer detection of its frame already holds is ignored rather than opening a
 cluster (a split mask or a duplicate detection). Detections touching the image border or smaller than
 the pruning size are "unreliable": they join clusters but open none and do not count towards publishing.
+Always-truncated objects (the project's own extension; the paper does not address them): truncated
+detections that stay unassigned and lie farther than lambda from every centre of their class are pooled;
+at each full pass the pool of a class is clustered among itself with the same segment DP-means (leader
+opening at lambda, then least-squares centres and nearest-centre re-assignment), and a group with
+detections from at least `truncated_min_views` distinct frames, whose centre is at least
+`truncated_merge_distance` from every cluster of its class, opens a cluster (one detection per frame, the
+nearest). Pooled detections explained by a published object's 3D box (IoU of the detection box with the
+object's projected box, clipped to the image, at least `truncated_explained_iou`) are left out: the visible
+end of a long table is far from the table's centre. Such a cluster counts its truncated detections towards
+publishing (until it has min_track_views reliable ones) and merges with a cluster of its class within
+`truncated_merge_distance` (rather than merge_distance). At every full pass, a cluster most of whose
+detections are explained by another published object's box is merged into it (`merge_explained`), so an
+object first seen truncated and later whole is not duplicated by the biased centres of its truncated views
+(this also merges the two halves of a long table seen from its ends, whose centres stay apart).
 Publishing ("confirmed"): a cluster is published once it has `min_track_views` reliable detections, has
 been in view (its centre projects into the image) for `confirm_window` frames since its first detection,
 and was detected in at least `min_hit_ratio` of them; a published cluster whose hit ratio drops below
@@ -41,8 +55,12 @@ out), with a weak pull to the cluster centre; objects stand on the floor plane z
 `objects_on_floor`. Boxes are refitted (`Associator.refine_boxes`, bounded per frame) when an object has
 grown by `box_refit_growth` since its last fit, from its kept detections when pruning leaves enough.
 
+Pixel sizes (min_box_width, min_box_height) are given for a 640x480 image and scaled by
+s = sqrt(W * H / (640 * 480)) for a W x H image (`frodo_detection.core.resolution_scale`); border_margin
+is in plain pixels.
+
 Pruning (supplement "Detection Pruning"): a detection is kept when (1) its box is at least
-min_box_width x min_box_height pixels, (2) the IoU between it and the projection of its object's 3D box
+min_box_width x min_box_height pixels (scaled to the resolution), (2) the IoU between it and the projection of its object's 3D box
 is at least `occlusion_iou` (the projection is not clipped to the image, so truncation fails this test as
 well as occlusion), and (3) its IoU with the (clipped) projected box of every other published object is at
 most `overlap_iou`.
@@ -59,7 +77,7 @@ from scipy.optimize import least_squares, linear_sum_assignment
 
 from frodo_common.categories import category_by_id
 from frodo_common.geometry import box_corners, invert_transform
-from frodo_detection.core import instance_boxes
+from frodo_detection.core import REFERENCE_SIZE, instance_boxes, resolution_scale
 
 ASSOCIATION_DTYPE = np.dtype([('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('label', '<u2'), ('object_id', '<i4'),
                               ('kept', 'u1'), ('bbox', '<f4', (4,))])
@@ -89,6 +107,9 @@ class AssociationConfig:
     confirm_window: int = 10
     drop_hit_ratio: float = 0.4
     truncated_opens_clusters: bool = False
+    truncated_min_views: int = 4
+    truncated_merge_distance: float = 0.4
+    truncated_explained_iou: float = 0.5
     objects_on_floor: bool = True
     floor_height: float = 0.0
     size_prior_weight: float = 0.05
@@ -118,8 +139,8 @@ CONFIG_DOC: dict[str, str] = {
     'center_prior_weight': 'Weight (per segment) pulling a cluster centre towards the mean segment midpoint; '
                            'regularises near-parallel segments.',
     'max_center_segments': 'Segments per cluster used to re-estimate its centre, evenly spread over its detections.',
-    'min_track_views': 'Reliable detections (not truncated, at least min_box_width x min_box_height) a cluster '
-                       'needs before it is published as an object.',
+    'min_track_views': 'Reliable detections (not truncated, at least min_box_width x min_box_height, scaled) a '
+                       'cluster needs before it is published as an object.',
     'min_hit_ratio': 'A cluster is published once it was detected in at least this fraction of the frames whose '
                      'image contains its centre (since its first detection).',
     'confirm_window': 'Frames with the cluster centre in view (since its first detection) before the hit ratio '
@@ -127,6 +148,17 @@ CONFIG_DOC: dict[str, str] = {
     'drop_hit_ratio': 'A published cluster whose hit ratio falls below this (checked at full passes) is withdrawn.',
     'truncated_opens_clusters': 'Let detections touching the image border open new clusters and count towards '
                                 'publishing one (their box centre and size are biased).',
+    'truncated_min_views': 'Deferred opening (own extension, not in the paper): at full passes, unassigned '
+                           'truncated detections farther than lambda from every centre of their class are clustered '
+                           'among themselves (DP-means, lambda); a group with detections from at least this many '
+                           'frames opens a cluster (0: off), which its truncated detections may publish.',
+    'truncated_merge_distance': 'A cluster opened by the deferred rule merges with a cluster of its class closer than '
+                                'this (m) (its centre is biased by the truncation); groups this close to an existing '
+                                'cluster open none.',
+    'truncated_explained_iou': 'A detection whose box has at least this IoU with the projected (clipped) 3D box of '
+                               'another published object of its class is explained by it (own extension): explained '
+                               'truncated detections are not pooled for deferred opening, and at full passes a cluster '
+                               'whose detections are mostly explained by one object is merged into it (> 1: off).',
     'objects_on_floor': 'Boxes stand on the plane z = floor_height (gravity-aligned world).',
     'floor_height': 'Height of the support plane (m) when objects_on_floor.',
     'size_prior_weight': 'Weight of the class size prior (log-size residual) in the box fit.',
@@ -136,8 +168,10 @@ CONFIG_DOC: dict[str, str] = {
     'box_max_views': 'Detections used per box fit (evenly spread over the object\'s detections).',
     'max_box_fits_per_frame': 'Box fits per processed frame at most (bounds the per-frame latency).',
     'prune': 'Apply detection pruning (size, occlusion, overlap); off: every associated detection is kept.',
-    'min_box_width': 'Pruning (1): detections narrower than this (pixels) are rejected.',
-    'min_box_height': 'Pruning (1): detections lower than this (pixels) are rejected.',
+    'min_box_width': 'Pruning (1): detections narrower than this are rejected and open no clusters (pixels at '
+                     '640x480, scaled by sqrt(W*H/(640*480)) at other resolutions).',
+    'min_box_height': 'Pruning (1): detections lower than this are rejected and open no clusters (pixels at '
+                      '640x480, scaled by sqrt(W*H/(640*480)) at other resolutions).',
     'occlusion_iou': 'Pruning (2): detections whose IoU with their object\'s projected 3D box is below this are '
                      'rejected (occluded or truncated).',
     'overlap_iou': 'Pruning (3): detections whose IoU with another object\'s projected 3D box is above this are '
@@ -431,7 +465,8 @@ def prune_detections(det_boxes: np.ndarray, object_index: np.ndarray, object_box
     object_boxes (-1: no object or no 3D box yet: only the size test applies); object_boxes: (N, O, 4) the
     projected 3D boxes (not clipped) of the O objects, in each detection's frame; object_valid: (N, O)
     projection usable; image_sizes: (N, 2) (width, height) of each detection's image.
-    (1) size: width >= min_box_width and height >= min_box_height;
+    (1) size: width >= min_box_width and height >= min_box_height (both scaled to the image size by
+        `resolution_scale`);
     (2) occlusion: IoU(detection, own projected box) >= occlusion_iou; the projection is not clipped, so a
         detection truncated by the image border fails this test too (the paper's "occlusions or truncations");
     (3) overlap: IoU(detection, other object's projected box clipped to the image) <= overlap_iou.
@@ -439,7 +474,9 @@ def prune_detections(det_boxes: np.ndarray, object_index: np.ndarray, object_box
     """
     w = det_boxes[:, 2] - det_boxes[:, 0]
     h = det_boxes[:, 3] - det_boxes[:, 1]
-    kept = (w >= cfg.min_box_width) & (h >= cfg.min_box_height)
+    scale = np.sqrt(np.prod(np.asarray(image_sizes, dtype=np.float64).reshape(-1, 2), axis=1)
+                    / (REFERENCE_SIZE[0] * REFERENCE_SIZE[1]))                     # resolution_scale per row
+    kept = (w >= cfg.min_box_width * scale) & (h >= cfg.min_box_height * scale)
     if object_boxes.shape[1] == 0:
         return kept
     rows = np.arange(len(det_boxes))
@@ -455,8 +492,9 @@ def prune_detections(det_boxes: np.ndarray, object_index: np.ndarray, object_box
 # ---------------------------------------------------------------- incremental association
 @dataclass
 class ObjectTrack:
-    """One cluster: id, class, centre (3,), published ("confirmed") or not, 3D box (None until fitted) and
-    its detection count at the last box fit."""
+    """One cluster: id, class, centre (3,), published ("confirmed") or not, 3D box (None until fitted), its
+    detection count at the last box fit, and whether the deferred truncated rule opened it (until it merges
+    with another cluster or gains min_track_views reliable detections)."""
 
     object_id: int
     coco_id: int
@@ -464,6 +502,7 @@ class ObjectTrack:
     confirmed: bool = False
     box: Box3D | None = None
     fitted_views: int = 0
+    from_truncated: bool = False
 
 
 @dataclass
@@ -529,7 +568,7 @@ class Associator:
         self.rows = _Table(segment=((2, 3), np.float64, 0.0), box=((4,), np.float64, 0.0),
                            edge_valid=((4,), bool, False), label=((), np.int64, 0), coco=((), np.int64, 0),
                            frame=((), np.int64, 0), assign=((), np.int64, -1), kept=((), bool, False),
-                           valid=((), bool, False), reliable=((), bool, False))
+                           valid=((), bool, False), reliable=((), bool, False), truncated=((), bool, False))
         self.frames = _Table(stamp=((), np.int64, 0), K=((3, 3), np.float64, 0.0),
                              T_world_camera=((4, 4), np.float64, 0.0), T_camera_world=((4, 4), np.float64, 0.0),
                              size=((2,), np.float64, 0.0), start=((), np.int64, 0), stop=((), np.int64, 0))
@@ -567,15 +606,18 @@ class Associator:
                                                 cfg.floor_height + 0.5 * size_ranges[:, 1] * (1 + cfg.depth_margin))
         w, h = size
         m = cfg.border_margin
+        scale = resolution_scale(w, h)
         edge_valid = np.stack([boxes[:, 0] > m - 0.5, boxes[:, 1] > m - 0.5,
                                boxes[:, 2] < w - 0.5 - m, boxes[:, 3] < h - 0.5 - m], axis=1)
+        big_enough = (boxes[:, 2] - boxes[:, 0] >= cfg.min_box_width * scale) \
+            & (boxes[:, 3] - boxes[:, 1] >= cfg.min_box_height * scale)
+        truncated = ~edge_valid.all(axis=1)
         fi = len(self.frames)
         rows = self.rows.append(segment=segments, box=boxes, edge_valid=edge_valid, label=labels, coco=coco,
                                 frame=np.full(len(labels), fi), assign=np.full(len(labels), -1),
                                 kept=np.zeros(len(labels), bool), valid=valid,
-                                reliable=valid & (cfg.truncated_opens_clusters | edge_valid.all(axis=1))
-                                & (boxes[:, 2] - boxes[:, 0] >= cfg.min_box_width)
-                                & (boxes[:, 3] - boxes[:, 1] >= cfg.min_box_height))
+                                reliable=valid & big_enough & (cfg.truncated_opens_clusters | ~truncated),
+                                truncated=valid & big_enough & truncated)
         self.frames.append(stamp=[stamp], K=K[None], T_world_camera=T_world_camera[None],
                            T_camera_world=invert_transform(T_world_camera)[None], size=[(w, h)],
                            start=[rows.start], stop=[rows.stop])
@@ -588,6 +630,9 @@ class Associator:
             changed, gone = self.full_pass()
             dirty |= changed
             removed.update(gone)
+            gone, merge_frames = self.merge_explained()
+            removed.update(gone)
+            dirty |= merge_frames
         merged, merge_frames = self.merge_close()
         removed.update(merged)
         confirm_frames, dropped = self._update_confirmation(recheck=full)
@@ -723,14 +768,101 @@ class Associator:
             if np.all(np.isfinite(c)):
                 self.tracks[int(oid)].center = c
 
+    def _explaining_objects(self, rows: np.ndarray) -> np.ndarray:
+        """Per detection row, the published object of its class (with a box, not the row's own cluster) whose
+        projected 3D box, clipped to the image, has the highest IoU with the detection box if that is at least
+        truncated_explained_iou; else -1. (R,) ids."""
+        out = np.full(len(rows), -1, np.int64)
+        boxed = [t for t in self.confirmed_tracks() if t.box is not None]
+        if not boxed or len(rows) == 0:
+            return out
+        fis, at = np.unique(self.rows.frame[rows], return_inverse=True)      # project once per frame
+        corners = np.array([t.box.corners() for t in boxed])
+        proj, valid = project_boxes(self.frames.K[fis], self.frames.T_camera_world[fis], corners)
+        proj, valid = clip_boxes(proj, self.frames.size[fis])[at], valid[at]
+        iou = box_iou(self.rows.box[rows][:, None, :], proj)
+        ids = np.array([t.object_id for t in boxed])
+        classes = np.array([t.coco_id for t in boxed])
+        ok = valid & (classes[None, :] == self.rows.coco[rows][:, None]) & (ids[None, :] != self.rows.assign[rows][:, None])
+        iou = np.where(ok, iou, 0.0)
+        best = iou.argmax(axis=1)
+        hit = iou[np.arange(len(rows)), best] >= self.cfg.truncated_explained_iou
+        out[hit] = ids[best[hit]]
+        return out
+
+    def _open_truncated_clusters(self) -> list[int]:
+        """Deferred opening for always-truncated objects (the project's own extension; the paper does not
+        address truncation here): DP-means over the pooled truncated detections (unassigned, beyond lambda
+        of every centre of their class), per class. Groups are opened leader-style (the first pooled segment
+        farther than lambda from every group centre opens a group at its midpoint and takes the pooled
+        segments within lambda), then refined by least-squares centres and nearest-centre re-assignment within
+        lambda. A group with detections of at least truncated_min_views frames, whose centre is at least
+        truncated_merge_distance from every cluster of its class, opens a cluster flagged `from_truncated`
+        with its nearest detection of each frame. Returns the opened ids."""
+        cfg = self.cfg
+        if cfg.truncated_min_views <= 0:
+            return []
+        pool = np.nonzero(self.rows.truncated & (self.rows.assign < 0))[0]
+        pool = pool[self._explaining_objects(pool) < 0]
+        opened: list[int] = []
+        for coco in np.unique(self.rows.coco[pool]):
+            sel = pool[self.rows.coco[pool] == coco]
+            ids, centers = self._class_centers(coco)
+            if len(ids):
+                sel = sel[point_segment_distance(centers, self.rows.segment[sel]).min(axis=1) >= cfg.cluster_penalty]
+            if len(np.unique(self.rows.frame[sel])) < cfg.truncated_min_views:
+                continue
+            segs = self.rows.segment[sel]
+            group = np.full(len(sel), -1, np.int64)
+            leaders: list[np.ndarray] = []
+            while np.any(group < 0):                          # leader opening (DP-means' first sweep)
+                i = int(np.argmax(group < 0))
+                leaders.append((segs[i, 0] + segs[i, 1]) / 2)
+                near = (group < 0) & (point_segment_distance(leaders[-1][None], segs)[:, 0] < cfg.cluster_penalty)
+                near[i] = True
+                group[near] = len(leaders) - 1
+            g_centers = np.array(leaders)
+            for _ in range(cfg.max_em_iterations):           # EM among the pooled segments
+                ok = group >= 0
+                g_centers = lsq_centers(segs[ok], group[ok], len(g_centers), cfg.center_prior_weight)
+                dist = point_segment_distance(np.nan_to_num(g_centers, nan=1e9), segs)
+                new = np.where(dist.min(axis=1) < cfg.cluster_penalty, dist.argmin(axis=1), -1)
+                if np.array_equal(new, group):
+                    break
+                group = new
+            for g in range(len(g_centers)):
+                members = np.nonzero(group == g)[0]
+                frames = self.rows.frame[sel[members]]
+                if len(np.unique(frames)) < cfg.truncated_min_views:
+                    continue
+                # One detection per frame: the nearest to the group centre.
+                d = point_segment_distance(g_centers[g][None], segs[members])[:, 0]
+                order = np.lexsort((d, frames))
+                first = np.ones(len(order), bool)
+                first[1:] = frames[order][1:] != frames[order][:-1]
+                members = members[order[first]]
+                center = lsq_center(segs[members], cfg.center_prior_weight)
+                ids, centers = self._class_centers(coco)
+                if len(ids) and np.linalg.norm(centers - center, axis=1).min() < cfg.truncated_merge_distance:
+                    continue
+                oid = self._new_track(int(sel[members[0]]))
+                self.rows.assign[sel[members]] = oid
+                self.tracks[oid].center = center
+                self.tracks[oid].from_truncated = True
+                opened.append(oid)
+        return opened
+
     def full_pass(self) -> tuple[set[int], dict[int, int]]:
         """EM over all detections until the assignment is stable (at most max_em_iterations): nearest centre
         within lambda with same-frame exclusivity, new clusters for segments beyond lambda of every centre,
-        centres re-estimated. Returns (frames whose assignment changed, {emptied cluster id: -1})."""
+        centres re-estimated; once stable, the deferred rule for truncated detections
+        (`_open_truncated_clusters`) may open clusters and EM goes on.
+        Returns (frames whose assignment changed, {emptied cluster id: -1})."""
         cfg = self.cfg
         valid = np.nonzero(self.rows.valid)[0]
         before = self.rows.assign.copy()
         removed: dict[int, int] = {}
+        pooled = False
         for _ in range(cfg.max_em_iterations):
             ids = np.array(sorted(self.tracks), dtype=np.int64)
             if len(ids) == 0:
@@ -772,12 +904,18 @@ class Associator:
                 removed[oid] = -1
             self._update_centers(list(self.tracks))
             if not changed:
-                break
+                if pooled or not self._open_truncated_clusters():
+                    pooled = True
+                    break
+                pooled = True
+        if not pooled:
+            self._open_truncated_clusters()
         diff = np.nonzero(before != self.rows.assign)[0]
         return set(np.unique(self.rows.frame[diff]).tolist()), removed
 
     def merge_close(self) -> tuple[dict[int, int], set[int]]:
-        """Merge same-class clusters closer than merge_distance (the older id survives); of two detections of
+        """Merge same-class clusters closer than merge_distance (truncated_merge_distance when one was opened by
+        the deferred truncated rule; the older id survives); of two detections of
         one frame on the merged cluster the one nearer its centre stays, the other is ignored (-1)."""
         removed: dict[int, int] = {}
         dirty: set[int] = set()
@@ -785,31 +923,64 @@ class Associator:
             ids = np.array(sorted(self.tracks), dtype=np.int64)
             centers = np.array([self.tracks[i].center for i in ids])
             classes = np.array([self.tracks[i].coco_id for i in ids])
+            trunc = np.array([self.tracks[i].from_truncated for i in ids])
             d = np.linalg.norm(centers[:, None] - centers[None], axis=2)
             d[classes[:, None] != classes[None, :]] = np.inf
             d[np.tril_indices(len(ids))] = np.inf
-            i, j = np.unravel_index(np.argmin(d), d.shape)
-            if d[i, j] >= self.cfg.merge_distance:
+            # Relative to the pair's merge distance (larger when a cluster was opened by truncated detections).
+            limit = np.where(trunc[:, None] | trunc[None, :], self.cfg.truncated_merge_distance,
+                             self.cfg.merge_distance)
+            i, j = np.unravel_index(np.argmin(d / limit), d.shape)
+            if d[i, j] >= limit[i, j]:
                 break
-            keep, gone = int(ids[i]), int(ids[j])          # ids ascend: ids[i] is the older
-            members = np.nonzero((self.rows.assign == keep) | (self.rows.assign == gone))[0]
-            center = lsq_center(self.rows.segment[members], self.cfg.center_prior_weight)
-            frames = self.rows.frame[members]
-            dist = point_segment_distance(center[None], self.rows.segment[members])[:, 0]
-            order = np.lexsort((dist, frames))
-            first = np.ones(len(order), bool)
-            first[1:] = frames[order][1:] != frames[order][:-1]
-            self.rows.assign[members] = keep
-            self.rows.assign[members[order[~first]]] = -1
-            survivor = self.tracks[keep]
-            survivor.confirmed = survivor.confirmed or self.tracks[gone].confirmed
-            survivor.fitted_views = 0                      # refit with the merged detections
-            del self.tracks[gone]
-            removed = {k: (keep if v == gone else v) for k, v in removed.items()}
-            removed[gone] = keep
-            self.merges += 1
-            self._update_centers([keep])
-            dirty |= set(np.unique(frames).tolist())
+            removed, dirty = self._merge_pair(int(ids[i]), int(ids[j]), removed, dirty)   # ids[i] is the older
+        return removed, dirty
+
+    def _merge_pair(self, a: int, b: int, removed: dict[int, int], dirty: set[int]) -> tuple[dict[int, int], set[int]]:
+        """Merge clusters a and b (the older id survives): of two detections of one frame the one nearer the
+        merged centre stays, the other is ignored (-1). Returns the updated (removed, dirty frames)."""
+        keep, gone = min(a, b), max(a, b)
+        members = np.nonzero((self.rows.assign == keep) | (self.rows.assign == gone))[0]
+        center = lsq_center(self.rows.segment[members], self.cfg.center_prior_weight)
+        frames = self.rows.frame[members]
+        dist = point_segment_distance(center[None], self.rows.segment[members])[:, 0]
+        order = np.lexsort((dist, frames))
+        first = np.ones(len(order), bool)
+        first[1:] = frames[order][1:] != frames[order][:-1]
+        self.rows.assign[members] = keep
+        self.rows.assign[members[order[~first]]] = -1
+        survivor = self.tracks[keep]
+        survivor.confirmed = survivor.confirmed or self.tracks[gone].confirmed
+        survivor.from_truncated = survivor.from_truncated and self.tracks[gone].from_truncated
+        survivor.fitted_views = 0                      # refit with the merged detections
+        if survivor.box is None:
+            survivor.box = self.tracks[gone].box
+        del self.tracks[gone]
+        removed = {k: (keep if v == gone else v) for k, v in removed.items()}
+        removed[gone] = keep
+        self.merges += 1
+        self._update_centers([keep])
+        return removed, dirty | set(np.unique(frames).tolist())
+
+    def merge_explained(self) -> tuple[dict[int, int], set[int]]:
+        """Merge a cluster (with at least min_track_views detections) into a published object of its class when
+        more than half of its detections are explained by that object's 3D box (`_explaining_objects`: IoU with
+        the clipped projection at least truncated_explained_iou). Run at full passes; catches duplicates whose
+        centres are farther apart than the merge distances because the box-centre rays of partial views (the
+        visible end of a long table) are biased. Returns ({gone id: surviving id}, frames whose rows changed)."""
+        removed: dict[int, int] = {}
+        dirty: set[int] = set()
+        if self.cfg.truncated_explained_iou > 1.0 or len(self.tracks) < 2:
+            return removed, dirty
+        rows = np.nonzero(self.rows.assign >= 0)[0]
+        expl = self._explaining_objects(rows)                 # one batched projection for all clusters
+        n = np.bincount(self.rows.assign[rows], minlength=self.next_id)
+        pairs, counts = np.unique(np.stack([self.rows.assign[rows], expl])[:, expl >= 0], axis=1, return_counts=True)
+        touched: set[int] = set()
+        for (oid, by), c in zip(pairs.T.tolist(), counts.tolist()):
+            if c * 2 > n[oid] and n[oid] >= self.cfg.min_track_views and not {oid, by} & touched:
+                removed, dirty = self._merge_pair(oid, by, removed, dirty)
+                touched |= {oid, by}                           # the rest waits for the next full pass
         return removed, dirty
 
     def hit_ratio(self, object_id: int) -> tuple[float, int]:
@@ -835,15 +1006,20 @@ class Associator:
 
     def _update_confirmation(self, recheck: bool) -> tuple[set[int], dict[int, int]]:
         """Confirm clusters with at least min_track_views reliable detections (not truncated, not too small:
-        those that may open clusters), in view for at least confirm_window frames and a hit ratio of at least
+        those that may open clusters; for clusters opened by the deferred truncated rule, truncated ones count), in view for at least confirm_window frames and a hit ratio of at least
         min_hit_ratio; with `recheck`, withdraw confirmed clusters whose hit ratio fell below drop_hit_ratio
         (over at least 2 * min_track_views frames in view). Returns (frames whose rows change, withdrawn ids)."""
         cfg = self.cfg
         counts = np.bincount(self.rows.assign[(self.rows.assign >= 0) & self.rows.reliable], minlength=self.next_id)
+        all_counts = np.bincount(self.rows.assign[(self.rows.assign >= 0) & (self.rows.reliable | self.rows.truncated)],
+                                 minlength=self.next_id)
         changed: list[int] = []
         withdrawn: dict[int, int] = {}
         for t in self.tracks.values():
-            if not t.confirmed and counts[t.object_id] >= cfg.min_track_views:
+            if t.from_truncated and counts[t.object_id] >= cfg.min_track_views:
+                t.from_truncated = False          # now seen whole often enough: an ordinary cluster
+            n = all_counts[t.object_id] if t.from_truncated else counts[t.object_id]
+            if not t.confirmed and n >= cfg.min_track_views:
                 ratio, n_view = self.hit_ratio(t.object_id)
                 if ratio >= cfg.min_hit_ratio and n_view >= cfg.confirm_window:
                     t.confirmed = True

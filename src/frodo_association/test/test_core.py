@@ -6,7 +6,7 @@ import pytest
 from frodo_association.core import (AssociationConfig, Associator, Box3D, box_segments, clip_segments_to_heights,
                                     depth_intervals, detections_from_instances, fit_box, lsq_center,
                                     point_segment_distance, project_boxes, prune_detections)
-from frodo_association.synthetic import make_scene
+from frodo_association.synthetic import BoxObject, make_scene, render_instances
 from frodo_common.geometry import invert_transform, look_at, project_points
 
 CHAIR = 62
@@ -161,7 +161,7 @@ def test_pruning_rejects_small_occluded_and_overlapping_detections():
     own = np.array([100.0, 50.0, 160.0, 170.0])
     other = np.array([200.0, 60.0, 280.0, 160.0])
     dets = np.array([own,                                   # clean: kept
-                     [100.0, 50.0, 120.0, 70.0],            # too small
+                     [100.0, 50.0, 110.0, 60.0],            # too small (24 px at 640x480 = 12 px here)
                      [100.0, 50.0, 160.0, 110.0],           # lower half occluded: IoU 0.5
                      own,                                   # the same box but over the other object (below)
                      [-0.5, 50.0, 40.0, 170.0]])            # truncated by the border (its projection is not)
@@ -213,3 +213,78 @@ def test_a_cluster_rarely_detected_while_in_view_is_not_published():
     assert len(published) == 1 and np.linalg.norm(published[0].center - a) < 0.1
     ratio, n_view = assoc.hit_ratio(next(i for i in assoc.tracks if i != published[0].object_id))
     assert ratio == pytest.approx(4 / 20) and n_view == 20
+
+
+def test_box_size_thresholds_scale_with_the_resolution():
+    # min_box_width/height are given at 640x480: 24 px there, 12 px at 320x240, 48 px at 1280x960.
+    cfg = AssociationConfig(min_box_width=24, min_box_height=24)
+    det = np.array([[100.0, 50.0, 116.0, 66.0]])                 # 16 x 16 px
+    kept = [prune_detections(det, np.array([-1]), np.zeros((1, 0, 4)), np.zeros((1, 0), bool),
+                             np.array([size], float), cfg)[0] for size in ((320, 240), (640, 480), (1280, 960))]
+    assert kept == [True, False, False]
+    # The same scaling decides which detections may open clusters (reliable).
+    T = look_at([0.0, -6.0, 1.4], [0.0, 0.0, 0.4])
+    box = _box_of([0, 0, 0.2], (0.3, 0.3, 0.4), 0.0, T)             # a far stool, under 24 x 24 px at f = 300
+    assert 12 < box[2] - box[0] < 24 and 12 < box[3] - box[1] < 24
+    for size, reliable in ((SIZE, True), ((640, 480), False)):
+        assoc = Associator(cfg)
+        assoc.add_frame(1, K, T, size, [CHAIR * 256 + 1], [box])
+        assert assoc.rows.reliable.tolist() == [reliable] and len(assoc.tracks) == int(reliable)
+
+
+def _yaw_turn(v, angle):
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([c * v[0] - s * v[1], s * v[0] + c * v[1], v[2]])
+
+
+def _arc_views(target, n, radius, a0, a1, turn=0.0):
+    """Cameras on an arc around `target` looking at it, turned about z by `turn` (the target moves towards the
+    left image border for a negative turn, the right one for a positive)."""
+    out = []
+    for a in np.linspace(a0, a1, n):
+        p = np.array([target[0] + radius * np.cos(a), target[1] + radius * np.sin(a), 1.4])
+        out.append(look_at(p, p + _yaw_turn(np.asarray(target) - p, turn)))
+    return out
+
+
+def _run_views(objects, views, cfg):
+    assoc = Associator(cfg)
+    for k, T in enumerate(views):
+        instances, _, _ = render_instances(objects, K, T, SIZE)
+        labels, boxes = detections_from_instances(instances)
+        assoc.add_frame(k, K, T, SIZE, labels, boxes)
+        assoc.refine_boxes()
+    return assoc
+
+
+def test_an_always_truncated_object_is_recovered_as_one_track():
+    chair = BoxObject(CHAIR, np.array([0.0, 0.0, 0.45]), np.array([0.5, 0.5, 0.9]), 0.3)
+    views = _arc_views(chair.center, 30, 3.0, 0.0, np.pi / 2, turn=-np.arctan(190 / 300))
+    for T in views:                                   # cut by the left border in every view
+        _, boxes = detections_from_instances(render_instances([chair], K, T, SIZE)[0])
+        assert len(boxes) == 1 and boxes[0, 0] < 0 and boxes[0, 2] - boxes[0, 0] < 40
+    assoc = _run_views([chair], views, AssociationConfig())
+    published = assoc.confirmed_tracks()
+    assert len(assoc.tracks) == 1 and len(published) == 1
+    assert np.linalg.norm(published[0].center[:2] - chair.center[:2]) < 0.3
+    assert np.count_nonzero(assoc.rows.assign == published[0].object_id) >= 20
+    # Without the deferred rule truncated detections open no cluster: the chair is lost.
+    assert _run_views([chair], views, AssociationConfig(truncated_min_views=0)).tracks == {}
+
+
+def test_an_object_first_seen_truncated_then_whole_gives_one_track():
+    # A long table: the first 20 views see only its left end (cut by the right border), whose box-centre rays
+    # meet ~0.65 m from the table centre, so the deferred rule opens a cluster there; whole views then open a
+    # second one at the centre, farther than truncated_merge_distance. The truncated cluster's detections are
+    # explained by the whole table's projected box, so the full pass merges them: one track, the older id.
+    table = BoxObject(67, np.array([0.0, 0.0, 0.375]), np.array([2.0, 0.8, 0.75]), 0.0)
+    arc = (3.0, -np.pi / 2 - 0.4, -np.pi / 2 + 0.4)
+    views = _arc_views(table.center, 20, *arc, turn=0.6) + _arc_views(table.center, 40, *arc)
+    assoc = _run_views([table], views, AssociationConfig())
+    assert [t.object_id for t in assoc.confirmed_tracks()] == [0] and list(assoc.tracks) == [0]
+    assert np.linalg.norm(assoc.tracks[0].center[:2] - table.center[:2]) < 0.1
+    whole = assoc.rows.frame >= 20
+    assert np.all(assoc.rows.assign[whole] == 0)
+    # With the box test off (IoU above 1 never holds) the two clusters stay apart: a duplicate while published.
+    assoc = _run_views([table], views[:40], AssociationConfig(truncated_explained_iou=2.0))
+    assert len(assoc.confirmed_tracks()) == 2
