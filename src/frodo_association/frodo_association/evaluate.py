@@ -16,7 +16,8 @@ Metrics (per scene, then pooled over scenes):
 
 Usage: python -m frodo_association.evaluate [--seeds 100-119] [--objects 2-5] [--frames 60]
        [--layout walk|dense] [--conditions NAME,...] [--no-ablation] [--json OUT]
-       python -m frodo_association.evaluate --bags A.mcap [B.mcap ...]   (contract bags with ground truth)
+       python -m frodo_association.evaluate --bags A.mcap [B.mcap ...] [--pool] [--conditions NAME,...]
+           (contract bags with ground truth; by default clean, one row per bag; --pool: one row per condition)
 """
 from __future__ import annotations
 
@@ -31,7 +32,8 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from frodo_association.core import AssociationConfig, Associator, box_iou, canonical_yaw, clip_boxes
-from frodo_association.synthetic import BoxObject, SynthFrame, SynthScene, make_furniture_scene, make_scene
+from frodo_association.synthetic import (BoxObject, SynthFrame, SynthScene, add_noise, make_furniture_scene,
+                                        make_scene)
 from frodo_detection.core import FilterConfig, filter_instances, instance_boxes
 
 LAYOUTS: dict[str, dict] = {
@@ -245,26 +247,31 @@ def main(argv: list[str] | None = None) -> int:
                     help="'walk': boxes, 240 deg arc at ~3.6 m; 'dense': boxes in a 4 m square seen from 7.5 m "
                          "over 90 deg; 'furniture': the walk with rendered procedural chairs and tables")
     ap.add_argument('--no-ablation', action='store_true', help='only run with pruning on')
-    ap.add_argument('--conditions', default=','.join(CONDITIONS), help='comma-separated subset of: '
-                    + ', '.join(CONDITIONS).replace('%', '%%'))
+    ap.add_argument('--conditions', help='comma-separated subset of: ' + ', '.join(CONDITIONS).replace('%', '%%')
+                    + ' (default: all of them; with --bags: clean; noise is added to the bags\' instance images and '
+                    'poses with the same models)')
+    ap.add_argument('--pool', action='store_true', help='with --bags: one row per condition over all bags')
     ap.add_argument('--json', help='also write the results as JSON')
     args = ap.parse_args(argv)
     filt = FilterConfig()
     base = AssociationConfig()
     out = {'machine': f'{platform.node()} ({platform.processor() or platform.machine()})', 'results': {}}
+    conditions = [c.strip() for c in (args.conditions or ('clean' if args.bags else ','.join(CONDITIONS))).split(',')]
     if args.bags:
         groups = {}
-        for path in args.bags:
+        for k, path in enumerate(args.bags):
             scene, notes = scene_from_bag(path)
             print(f'# {path}: ' + '; '.join(notes))
-            groups[path] = [scene]
+            for name in conditions:
+                key = name if args.pool else (path if name == 'clean' else f'{path} / {name}')
+                groups.setdefault(key, []).append(add_noise(scene, k, **CONDITIONS[name]))
         print(f'# association evaluation of {len(args.bags)} bag(s), {out["machine"]}')
     else:
         seeds, n_objects = _range(args.seeds), _range(args.objects)
         make = make_furniture_scene if args.layout == 'furniture' else make_scene
         groups = {name: [make(n_objects[i % len(n_objects)], seed, n_frames=args.frames,
                               **LAYOUTS[args.layout], **CONDITIONS[name]) for i, seed in enumerate(seeds)]
-                  for name in [c.strip() for c in args.conditions.split(',')]}
+                  for name in conditions}
         print(f'# association evaluation: {args.layout} layout, seeds {args.seeds}, {args.objects} objects, '
               f'{args.frames} frames, {out["machine"]}')
     print(HEADER)

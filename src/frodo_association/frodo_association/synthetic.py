@@ -152,6 +152,27 @@ def _noisy_masks(instances: np.ndarray, rng: np.random.Generator, radius: int, m
     return out
 
 
+def add_noise(scene: SynthScene, seed: int, mask_noise: int = 0, rot_noise_deg: float = 0.0,
+              trans_noise: float = 0.0, miss_rate: float = 0.0) -> SynthScene:
+    """A copy of `scene` with the noise models of `make_scene` applied to its instance images and observed
+    poses (perturbing the true ones), e.g. for a scene read from a bag (`evaluate.scene_from_bag`)."""
+    if not (mask_noise or rot_noise_deg or trans_noise or miss_rate):
+        return scene
+    rng = np.random.default_rng(seed)
+    frames = []
+    for f in scene.frames:
+        instances, gt, vis = f.instances, f.gt, f.visibility
+        if mask_noise or miss_rate:
+            instances = _noisy_masks(instances, rng, mask_noise, miss_rate)
+            present = set(np.unique(instances).tolist())
+            gt = {lab: i for lab, i in gt.items() if lab in present}
+            vis = {lab: v for lab, v in vis.items() if lab in present}
+        observed = _perturb(f.T_world_camera, rng, rot_noise_deg, trans_noise) \
+            if (rot_noise_deg or trans_noise) else f.T_world_camera_observed
+        frames.append(SynthFrame(f.stamp, f.K, f.T_world_camera, observed, f.size, instances, gt, vis))
+    return SynthScene(scene.objects, frames)
+
+
 def make_scene(n_objects: int, seed: int, n_frames: int = 60, size: tuple[int, int] = (320, 240),
                mask_noise: int = 0, rot_noise_deg: float = 0.0, trans_noise: float = 0.0,
                miss_rate: float = 0.0, fps: float = 10.0, extent: float = 1.6, radius: float = 3.6,

@@ -4,7 +4,7 @@ import numpy as np
 
 from frodo_association.core import AssociationConfig
 from frodo_association.evaluate import run_scene, scene_from_bag, summarise
-from frodo_association.synthetic import make_scene
+from frodo_association.synthetic import add_noise, make_scene
 from frodo_common import conversions as conv
 from frodo_common import topics
 from frodo_common.bag import BagWriter
@@ -43,3 +43,17 @@ def test_scene_from_bag_recovers_objects_and_labels(tmp_path):
     labelled = [(read_f.gt.get(lab), gt) for read_f, f in zip(read.frames, scene.frames) for lab, gt in f.gt.items()
                 if f.visibility[lab] > 0.5]
     assert np.mean([a == b for a, b in labelled]) > 0.95
+
+
+def test_add_noise_perturbs_a_recorded_scene_like_make_scene():
+    scene = make_scene(3, seed=4, n_frames=10)
+    assert add_noise(scene, 0) is scene                                  # the clean condition
+    noisy = add_noise(scene, 0, mask_noise=2, rot_noise_deg=0.5, trans_noise=0.02, miss_rate=0.5)
+    assert len(noisy.frames) == 10 and noisy.objects is scene.objects
+    f, g = scene.frames[3], noisy.frames[3]
+    assert np.array_equal(g.T_world_camera, f.T_world_camera) and not np.allclose(g.T_world_camera_observed,
+                                                                                  f.T_world_camera)
+    assert set(g.gt) <= set(f.gt) and set(g.gt) == set(np.unique(g.instances[g.instances > 0]).tolist())
+    assert sum(len(fr.gt) for fr in noisy.frames) < sum(len(fr.gt) for fr in scene.frames)   # misses
+    again = add_noise(scene, 0, mask_noise=2, rot_noise_deg=0.5, trans_noise=0.02, miss_rate=0.5)
+    assert np.array_equal(again.frames[3].instances, g.instances)      # seeded
