@@ -1,0 +1,367 @@
+"""Sparse optimisation stage (paper Sec. 4.3, "Initialization" and "Sparse Optimization"); torch + numpy only.
+
+Per object, the 2048 surface points Gs(z) of the prior's point decoder (paper Sec. 3, PSGN branch) are
+placed by an upright similarity x_world = s * R(yaw) * x_norm + t and compared with the object's
+detections in a bounded set of views:
+
+    E = ws * Es + wg * Eg + wr * Er
+
+- Es (silhouette, paper "Es"): symmetric 2D chamfer between the projected points and the instance mask,
+  per view, in units of the detection's box diagonal (resolution independent). The points -> mask half
+  reads a distance transform of the mask (cropped around the detection, `DT_SIZE`^2 cells, bilinear,
+  differentiable); the mask -> points half matches `mask_samples` pixels sampled on the mask to their
+  nearest projected point (nearest neighbours found without gradient, distances with gradient).
+  Pixels outside the image or covered by *other* detections are "unknown" (distance 0): a truncated
+  or occluded object is not pulled into its visible part.
+- Eg (geometry, paper "Eg"): one-sided 3D chamfer from SLAM landmarks inside the object's box to the
+  surface points, truncated at `geometry_truncation` metres and divided by it.
+- Er (code regulariser, paper ||z||^2 / sigma^2): mean over dimensions of ((z - mu) / sigma)^2 with mu,
+  sigma the per-dimension mean and spread of the prior's training codes (the paper's zero-mean prior,
+  for codes that are not centred).
+- Ep (photometric consistency) is not implemented (see README "Simplifications").
+
+Initialisation (paper: "exhaustive search for the best rotation about the gravity direction"):
+translation and scale from the association's 3D box (as `core.place_from_box`: scale = box height over
+the decoded shape's height, the shape's box centre at the box centre), yaw = the best of
+`yaw_candidates` evenly spaced angles under the energy above with the initial code. Then code, yaw,
+translation and log-scale are optimised jointly with Adam for a fixed number of iterations; the state
+with the lowest energy seen (the initial one included) is returned, so a diverging run falls back.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from scipy.ndimage import distance_transform_edt
+
+DT_SIZE = 64          # cells per side of a view's distance-transform crop
+DT_MARGIN = 0.6       # the crop extends this fraction of the box size beyond each side of the detection box
+
+
+@dataclass
+class SparseConfig:
+    """Parameters of the sparse stage (the node's `sparse_*` parameters)."""
+
+    iterations: int = 40
+    max_views: int = 16
+    mask_samples: int = 96
+    point_samples: int = 384          # projected points matched against mask samples (subset of the 2048)
+    yaw_candidates: int = 24
+    w_silhouette: float = 1.0
+    w_geometry: float = 0.5
+    w_code: float = 0.01
+    geometry_truncation: float = 0.1  # metres
+    lr_code: float = 0.02
+    lr_translation: float = 0.01      # metres per step (Adam)
+    lr_yaw: float = 0.02              # radians per step
+    lr_log_scale: float = 0.01
+    optimise_code: bool = True
+    seed: int = 0
+
+
+@dataclass
+class View:
+    """One kept associated detection: camera (K, T_world_camera) and the mask in compact form.
+
+    mask_uv (M, 2) float32 pixels sampled on the mask; dt (DT_SIZE, DT_SIZE) float32 distance to the mask
+    (units of the box diagonal, 0 on the mask and where unknown) over the crop `crop` = (u0, v0, u1, v1);
+    diag: detection box diagonal in pixels; image_size (width, height).
+    """
+
+    K: np.ndarray
+    T_world_camera: np.ndarray
+    mask_uv: np.ndarray
+    dt: np.ndarray
+    crop: tuple[float, float, float, float]
+    diag: float
+    image_size: tuple[int, int]
+
+    def nbytes(self) -> int:
+        return self.mask_uv.nbytes + self.dt.nbytes + 200
+
+
+@dataclass
+class SparseResult:
+    """Outcome of `refine`. `ok` False: the initial estimate is returned unchanged and `reason` says why."""
+
+    code: np.ndarray
+    T_world_object: np.ndarray
+    scale: float
+    yaw: float
+    translation: np.ndarray
+    ok: bool = True
+    reason: str = ''
+    energies: dict[str, float] = field(default_factory=dict)
+    initial_energies: dict[str, float] = field(default_factory=dict)
+    init_yaw: float = 0.0
+    iterations: int = 0
+    best_iteration: int = 0
+    views: int = 0
+    seconds: float = 0.0
+
+
+# ------------------------------------------------------------------ view data
+def view_from_mask(K, T_world_camera, mask: np.ndarray, n_samples: int = 128, unknown: np.ndarray | None = None,
+                   rng: np.random.Generator | None = None) -> View | None:
+    """Compact view data from a full-resolution boolean mask; None if the mask or camera is unusable.
+
+    unknown: optional bool (H, W), pixels whose state is unknown (other detections, possible occluders).
+    """
+    mask = np.asarray(mask, dtype=bool)
+    K = np.asarray(K, dtype=np.float64)
+    T = np.asarray(T_world_camera, dtype=np.float64)
+    if mask.ndim != 2 or K.shape != (3, 3) or T.shape != (4, 4) or not (np.isfinite(K).all() and np.isfinite(T).all()):
+        return None
+    ys, xs = np.nonzero(mask)
+    if len(xs) < 4:
+        return None
+    rng = rng if rng is not None else np.random.default_rng(0)
+    h, w = mask.shape
+    x0, y0, x1, y1 = xs.min(), ys.min(), xs.max() + 1, ys.max() + 1
+    diag = float(math.hypot(x1 - x0, y1 - y0))
+    pick = rng.choice(len(xs), size=n_samples, replace=len(xs) < n_samples)
+    mask_uv = np.stack([xs[pick], ys[pick]], 1).astype(np.float32) + rng.random((n_samples, 2), dtype=np.float32)
+    mx, my = DT_MARGIN * (x1 - x0) + 2, DT_MARGIN * (y1 - y0) + 2
+    crop = (x0 - mx, y0 - my, x1 + mx, y1 + my)
+    # distance transform at full resolution inside the (clipped) crop, then sampled on the DT_SIZE grid
+    cx0, cy0 = int(max(0, math.floor(crop[0]))), int(max(0, math.floor(crop[1])))
+    cx1, cy1 = int(min(w, math.ceil(crop[2]))), int(min(h, math.ceil(crop[3])))
+    sub = mask[cy0:cy1, cx0:cx1]
+    dist = distance_transform_edt(~sub).astype(np.float32) / max(diag, 1.0)
+    if unknown is not None:
+        dist[np.asarray(unknown, dtype=bool)[cy0:cy1, cx0:cx1] & ~sub] = 0.0
+    gu = crop[0] + (np.arange(DT_SIZE) + 0.5) * (crop[2] - crop[0]) / DT_SIZE
+    gv = crop[1] + (np.arange(DT_SIZE) + 0.5) * (crop[3] - crop[1]) / DT_SIZE
+    iu, iv = np.floor(gu).astype(int), np.floor(gv).astype(int)
+    inside = ((iv >= 0) & (iv < h))[:, None] & ((iu >= 0) & (iu < w))[None, :]
+    dt = np.zeros((DT_SIZE, DT_SIZE), np.float32)          # outside the image: unknown
+    ii, jj = np.nonzero(inside)
+    dt[ii, jj] = dist[iv[ii] - cy0, iu[jj] - cx0]
+    return View(K, T, mask_uv, dt, tuple(float(c) for c in crop), diag, (int(w), int(h)))
+
+
+def select_views(views: list, max_views: int) -> list:
+    """At most max_views views spread evenly over the list (kept in order)."""
+    if len(views) <= max_views:
+        return list(views)
+    idx = np.unique(np.round(np.linspace(0, len(views) - 1, max_views)).astype(int))
+    return [views[i] for i in idx]
+
+
+# ------------------------------------------------------------------ energy
+class _Batch:
+    """Views stacked as tensors."""
+
+    def __init__(self, views: list[View]):
+        T_cw = np.stack([np.linalg.inv(v.T_world_camera) for v in views])
+        self.R = torch.as_tensor(T_cw[:, :3, :3], dtype=torch.float32)            # (V, 3, 3)
+        self.t = torch.as_tensor(T_cw[:, :3, 3], dtype=torch.float32)              # (V, 3)
+        K = np.stack([v.K for v in views])
+        self.f = torch.as_tensor(K[:, [0, 1], [0, 1]], dtype=torch.float32)       # (V, 2)
+        self.c = torch.as_tensor(K[:, :2, 2], dtype=torch.float32)                 # (V, 2)
+        self.mask_uv = torch.as_tensor(np.stack([v.mask_uv for v in views]))      # (V, M, 2)
+        self.mask_u, self.mask_v = self.mask_uv[..., 0].contiguous(), self.mask_uv[..., 1].contiguous()
+        self.dt = torch.as_tensor(np.stack([v.dt for v in views]))[:, None]       # (V, 1, S, S)
+        crop = np.array([v.crop for v in views], dtype=np.float32)
+        self.crop_lo = torch.as_tensor(crop[:, :2])[:, None]                       # (V, 1, 2)
+        self.crop_hi = torch.as_tensor(crop[:, 2:])[:, None]
+        self.diag = torch.as_tensor([v.diag for v in views], dtype=torch.float32)[:, None]  # (V, 1)
+
+    def project(self, pts: torch.Tensor):
+        """World points (P, 3) -> pixels (V, P, 2) and a validity mask (V, P) (in front of the camera)."""
+        pc = torch.einsum('vij,pj->vpi', self.R, pts) + self.t[:, None]
+        z = pc[..., 2]
+        valid = z > 0.05
+        uv = pc[..., :2] / z.clamp_min(0.05)[..., None] * self.f[:, None] + self.c[:, None]
+        return uv, valid
+
+    def silhouette(self, pts: torch.Tensor, subset: torch.Tensor) -> torch.Tensor:
+        """Symmetric 2D chamfer (mean over views), distances in box diagonals."""
+        uv, valid = self.project(pts)
+        # points -> mask: distance transform lookup, plus the distance outside the crop
+        g = (uv - self.crop_lo) / (self.crop_hi - self.crop_lo) * 2 - 1                 # (V, P, 2)
+        inner = F.grid_sample(self.dt, g[:, None], mode='bilinear', padding_mode='border',
+                              align_corners=False)[:, 0, 0]                              # (V, P)
+        out = torch.maximum(self.crop_lo - uv, uv - self.crop_hi).clamp_min(0)
+        outside = (out.square().sum(-1) + 1e-6).sqrt() - 1e-3
+        d_pm = inner + outside / self.diag
+        valid_f = valid.float()
+        e_pm = (d_pm * valid_f).sum(1) / valid_f.sum(1).clamp_min(1.0)
+        # mask -> points: nearest projected point (subset) for every mask sample
+        sub_uv, sub_valid = uv[:, subset], valid[:, subset]
+        with torch.no_grad():   # per coordinate: ~10x faster than a (V, M, S, 2) difference tensor
+            su = torch.where(sub_valid, sub_uv[..., 0], torch.full_like(sub_uv[..., 0], 1e7))
+            d2 = (self.mask_u[:, :, None] - su[:, None, :]).square_()
+            d2.add_((self.mask_v[:, :, None] - sub_uv[..., 1].contiguous()[:, None, :]).square_())  # (V, M, S)
+            nearest = d2.argmin(2)                                                       # (V, M)
+        matched = torch.gather(sub_uv, 1, nearest[..., None].expand(-1, -1, 2))
+        e_mp = ((self.mask_uv - matched).square().sum(-1) + 1e-6).sqrt().mean(1) / self.diag[:, 0]
+        return (e_pm + e_mp).mean()
+
+
+def _rot(yaw: torch.Tensor) -> torch.Tensor:
+    c, s = torch.cos(yaw), torch.sin(yaw)
+    zero, one = torch.zeros_like(c), torch.ones_like(c)
+    return torch.stack([torch.stack([c, -s, zero]), torch.stack([s, c, zero]), torch.stack([zero, zero, one])])
+
+
+def _geometry(world_pts: torch.Tensor, slam: torch.Tensor | None, trunc: float) -> torch.Tensor:
+    if slam is None or len(slam) == 0:
+        return world_pts.new_zeros(())
+    with torch.no_grad():
+        nearest = torch.cdist(slam, world_pts).argmin(1)
+    d = torch.linalg.norm(slam - world_pts[nearest] + 1e-9, dim=1)
+    return d.clamp(max=trunc).mean() / trunc
+
+
+def slam_points_near(points: np.ndarray | None, center, size, yaw: float, margin: float = 0.1) -> np.ndarray:
+    """SLAM landmarks inside the upright box grown by `margin` metres (not below its floor + 2 cm)."""
+    if points is None or len(points) == 0:
+        return np.zeros((0, 3), np.float32)
+    p = np.asarray(points, dtype=np.float64)
+    p = p[np.isfinite(p).all(1)]
+    c, s = math.cos(yaw), math.sin(yaw)
+    d = p - np.asarray(center, dtype=np.float64)
+    local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]], 1)
+    half = np.asarray(size, dtype=np.float64) / 2
+    keep = (np.abs(local[:, 0]) < half[0] + margin) & (np.abs(local[:, 1]) < half[1] + margin) & \
+           (local[:, 2] > -half[2] + 0.02) & (local[:, 2] < half[2] + margin)
+    return p[keep].astype(np.float32)
+
+
+# ------------------------------------------------------------------ stage
+def pose_matrix(yaw: float, translation, scale: float) -> np.ndarray:
+    """T_world_object (4, 4) of an upright similarity."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    T = np.eye(4)
+    T[:3, :3] = scale * np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    T[:3, 3] = np.asarray(translation, dtype=np.float64)
+    return T
+
+
+def box_init(points_norm: np.ndarray, center, size, yaw: float) -> tuple[np.ndarray, float]:
+    """(translation, scale) placing the shape's box centre at the box centre, scale = box height / shape height."""
+    lo, hi = points_norm.min(0), points_norm.max(0)
+    scale = float(max(size[2], 1e-6) / max(hi[2] - lo[2], 1e-6))
+    c, s = math.cos(yaw), math.sin(yaw)
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    return np.asarray(center, dtype=np.float64) - scale * R @ ((lo + hi) / 2), scale
+
+
+def code_statistics(training_codes) -> tuple[torch.Tensor, torch.Tensor]:
+    """(mean, std) per dimension of the prior's training codes (the Er prior)."""
+    codes = torch.as_tensor(training_codes, dtype=torch.float32).cpu()
+    return codes.mean(0), codes.std(0).clamp_min(1e-3)
+
+
+def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None = None,
+           config: SparseConfig | None = None, init_yaw: float | None = None) -> SparseResult:
+    """Yaw search + joint code/pose optimisation of one object (paper Sec. 4.3).
+
+    prior: anything with `decode_points(codes) -> (N, 2048, 3)` torch (differentiable) and `training_codes`.
+    code (C,): the fused code; box (centre, size, yaw): the association's box; views: `View`s (at most
+    config.max_views are used, spread evenly); slam_points (N, 3) world landmarks or None.
+    init_yaw: if given, skip the exhaustive search and start from this yaw (warm start).
+    Never raises on bad input: returns the box placement with ok=False and a reason.
+    """
+    cfg = config or SparseConfig()
+    start = time.perf_counter()
+    center, size, box_yaw = (np.asarray(box[0], dtype=np.float64), np.asarray(box[1], dtype=np.float64),
+                             float(box[2]))
+    code = np.asarray(code, dtype=np.float32)
+    device = getattr(prior, 'device', 'cpu')
+
+    def fallback(reason: str, yaw: float = box_yaw, pts=None) -> SparseResult:
+        t, s = np.asarray(center, dtype=np.float64), 1.0
+        if pts is not None and np.isfinite(pts).all() and np.isfinite(center).all() and np.isfinite(size).all():
+            t, s = box_init(pts, center, size, yaw)
+        return SparseResult(code, pose_matrix(yaw, t, s), float(s), float(yaw), np.asarray(t), ok=False,
+                            reason=reason, init_yaw=float(yaw), views=len(views), seconds=time.perf_counter() - start)
+
+    if not (np.isfinite(code).all() and np.isfinite(center).all() and np.isfinite(size).all()
+            and np.isfinite(box_yaw) and np.all(size > 0)):
+        return fallback('non-finite code or box')
+    views = [v for v in views if v is not None and np.isfinite(v.K).all() and np.isfinite(v.T_world_camera).all()
+             and len(v.mask_uv) > 0 and np.isfinite(v.mask_uv).all() and np.isfinite(v.dt).all()]
+    views = select_views(views, cfg.max_views)
+    with torch.no_grad():
+        pts0 = prior.decode_points(code).float().cpu()[0]
+    if not torch.isfinite(pts0).all():
+        return fallback('decoded points are not finite')
+    if not views:
+        return fallback('no usable views', pts=pts0.numpy())
+
+    gen = torch.Generator().manual_seed(int(cfg.seed))
+    batch = _Batch(views)
+    subset = torch.randperm(pts0.shape[0], generator=gen)[:min(cfg.point_samples, pts0.shape[0])]
+    slam = slam_points_near(slam_points, center, size, box_yaw, margin=0.1 * float(size.max()) + 0.05)
+    slam_t = torch.as_tensor(slam) if len(slam) >= 5 and cfg.w_geometry > 0 else None
+    mu, sigma = code_statistics(prior.training_codes)
+    pts0_np = pts0.numpy().astype(np.float64)
+
+    def energy(pts_norm, z, yaw, t, log_s):
+        world = torch.exp(log_s) * pts_norm @ _rot(yaw).T + t
+        terms = {'silhouette': batch.silhouette(world, subset),
+                 'geometry': _geometry(world, slam_t, cfg.geometry_truncation),
+                 'code': (((z - mu) / sigma) ** 2).mean()}
+        total = cfg.w_silhouette * terms['silhouette'] + cfg.w_geometry * terms['geometry'] + cfg.w_code * terms['code']
+        return total, terms
+
+    z0 = torch.as_tensor(code)
+    # ---- initialisation: exhaustive yaw search about gravity, box translation and scale
+    if init_yaw is None or not np.isfinite(init_yaw):
+        n = max(1, int(cfg.yaw_candidates))
+        candidates = box_yaw + 2 * np.pi * np.arange(n) / n
+    else:
+        candidates = np.array([float(init_yaw)])
+    scores = []
+    with torch.no_grad():
+        for yaw in candidates:
+            t, s = box_init(pts0_np, center, size, yaw)
+            e, _ = energy(pts0, z0, torch.tensor(float(yaw)), torch.as_tensor(t, dtype=torch.float32),
+                          torch.tensor(math.log(s)))
+            scores.append(float(e) if torch.isfinite(e) else np.inf)
+    if not np.isfinite(scores).any():
+        return fallback('energy is not finite for any yaw candidate', pts=pts0_np)
+    yaw0 = float(candidates[int(np.argmin(scores))])
+    t0, s0 = box_init(pts0_np, center, size, yaw0)
+
+    # ---- joint optimisation of code, yaw, translation, log-scale (Adam, fixed iterations)
+    z = z0.clone().requires_grad_(cfg.optimise_code)
+    yaw = torch.tensor(yaw0, requires_grad=True)
+    t = torch.as_tensor(t0, dtype=torch.float32).clone().requires_grad_(True)
+    log_s = torch.tensor(math.log(s0), requires_grad=True)
+    groups = [{'params': [yaw], 'lr': cfg.lr_yaw}, {'params': [t], 'lr': cfg.lr_translation},
+              {'params': [log_s], 'lr': cfg.lr_log_scale}]
+    if cfg.optimise_code:
+        groups.append({'params': [z], 'lr': cfg.lr_code})
+    opt = torch.optim.Adam(groups)
+    best = None
+    initial_terms = None
+    done = 0
+    for it in range(int(cfg.iterations) + 1):
+        pts = prior.decode_points(z.to(device)).float().cpu()[0] if cfg.optimise_code else pts0
+        total, terms = energy(pts, z, yaw, t, log_s)
+        if initial_terms is None:
+            initial_terms = {k: float(v.detach()) for k, v in terms.items()} | {"total": float(total.detach())}
+        if not torch.isfinite(total):
+            break
+        if best is None or float(total.detach()) < best[0]:
+            best = (float(total.detach()), it, z.detach().clone(), float(yaw.detach()), t.detach().clone().double().numpy(),
+                    float(log_s.detach()), {k: float(v.detach()) for k, v in terms.items()} | {"total": float(total.detach())})
+        if it == int(cfg.iterations):
+            break
+        opt.zero_grad(set_to_none=True)
+        total.backward()
+        opt.step()
+        done = it + 1
+    _, best_it, zb, yb, tb, lsb, terms_b = best
+    s = math.exp(lsb)
+    yb = float(math.atan2(math.sin(yb), math.cos(yb)))
+    return SparseResult(zb.cpu().numpy().astype(np.float32), pose_matrix(yb, tb, s), float(s), yb, tb,
+                        energies=terms_b, initial_energies=initial_terms, init_yaw=yaw0, iterations=done,
+                        best_iteration=best_it, views=len(views), seconds=time.perf_counter() - start)
