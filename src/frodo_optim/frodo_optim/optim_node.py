@@ -1,7 +1,12 @@
 """Optimiser node: turns tracks (3D boxes) and fused shape codes into placed object meshes, asynchronously
-(paper Sec. 4.3; this version runs the fused stage: decode + box-fit placement, see frodo_optim.core).
+(paper Sec. 4.3). Stage 'fused': decode + box-fit placement (frodo_optim.core); stage 'sparse': yaw search
+and joint code/pose optimisation against the object's masks and SLAM points (frodo_optim.sparse), published
+after the fused result of the same pass.
 
-In:  /frodo/tracks (latched MarkerArray of boxes), /frodo/object_codes (latched table).
+In:  /frodo/tracks (latched MarkerArray of boxes), /frodo/object_codes (latched table); for the sparse stage
+     /frodo/detections (16UC1), /frodo/associations (table), /camera/pose, /camera/color/camera_info (stamp
+     matched by FrameCache; each detection's mask is reduced to a compact `sparse.View` and the frame
+     freed), /slam/points (latest map).
 Out: /frodo/objects (contract: TRIANGLE_LIST per object, world vertices), /frodo/boxes (contract: CUBE per
      object), /frodo/object_states (latched table for the command line's objects.json), /diagnostics with
      state idle|busy and pending_objects.
@@ -12,15 +17,18 @@ import threading
 import time
 
 import numpy as np
-from sensor_msgs.msg import PointCloud2
+from geometry_msgs.msg import PoseStamped
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from visualization_msgs.msg import Marker, MarkerArray
 
 from frodo_common import conversions as conv
 from frodo_common import topics
 from frodo_common.categories import category_by_id
 from frodo_common.node import ERROR, OK, WARN, FrodoNode, run_node
+from frodo_common.frame_cache import FrameCache
 from frodo_common.params import ParamSpec
-from frodo_optim.core import ObjectEstimate, fused_estimate
+from frodo_optim.core import ObjectEstimate, fused_estimate, world_box
+from frodo_optim.sparse import SparseConfig, ViewStore, refine, view_from_mask
 from frodo_optim.states import OBJECT_STATES, STAGES, STATES_DTYPE
 from frodo_shape.prior import ShapePrior
 
@@ -32,6 +40,21 @@ PARAMS = (
     ParamSpec('code_change_tolerance', 0.02,
               'Re-decode the mesh only when the fused code moved by more than this (relative L2); '
               'box updates alone just re-place the cached mesh.'),
+    ParamSpec('sparse_enabled', True, "Run the sparse stage (Sec. 4.3: yaw search + silhouette/SLAM-point "
+              "optimisation) after the fused stage; false publishes the fused placement only."),
+    ParamSpec('sparse_iterations', 40, 'Adam iterations of the sparse stage per object and pass.'),
+    ParamSpec('sparse_views', 16, 'Views (spread evenly over the kept ones) used by the sparse stage.'),
+    ParamSpec('sparse_views_stored', 64, 'Views remembered per object (thinned evenly beyond this; bounded memory).'),
+    ParamSpec('sparse_mask_samples', 96, 'Pixels sampled on each mask for the mask-to-points chamfer half.'),
+    ParamSpec('sparse_point_samples', 384, 'Decoded points (of 2048) matched against the mask samples.'),
+    ParamSpec('sparse_yaw_candidates', 24, 'Yaw angles of the exhaustive initial search about gravity.'),
+    ParamSpec('sparse_w_silhouette', 1.0, 'Weight of the silhouette energy Es (2D chamfer, box diagonals).'),
+    ParamSpec('sparse_w_geometry', 0.5, 'Weight of the SLAM-point energy Eg (truncated 3D chamfer); 0 disables.'),
+    ParamSpec('sparse_w_code', 0.01, 'Weight of the code regulariser Er (squared code z-score w.r.t. training codes).'),
+    ParamSpec('sparse_optimise_code', True, 'Optimise the shape code too (false: pose only).'),
+    ParamSpec('camera_info_topic', topics.CAMERA_INFO, 'Camera intrinsics topic.'),
+    ParamSpec('pose_topic', topics.POSE, 'Camera pose topic (T_world_camera, optical frame).'),
+    ParamSpec('slam_points_topic', topics.SLAM_POINTS, 'SLAM landmarks topic (whole map per message).'),
 )
 
 CLASS_COLOURS = {'chair': (0.95, 0.55, 0.15, 1.0), 'dining table': (0.2, 0.6, 0.95, 1.0)}
@@ -52,6 +75,11 @@ class OptimNode(FrodoNode):
         self.busy = False
         self.cond = threading.Condition()
         self.stopping = False
+        self.view_store = ViewStore(int(self.params['sparse_views_stored']))
+        self.slam_points: np.ndarray | None = None
+        self.sparse_info: dict[int, str] = {}                       # id -> last sparse outcome
+        self.frames = FrameCache(('detections', 'associations', 'pose'), int(self.params['frame_cache_size']))
+        self.rng = np.random.default_rng(0)
         self.objects_pub = self.create_publisher(MarkerArray, topics.OBJECTS, topics.LATCHED_QOS)
         self.boxes_pub = self.create_publisher(MarkerArray, topics.BOXES, topics.LATCHED_QOS)
         self.states_pub = self.create_publisher(PointCloud2, OBJECT_STATES, topics.LATCHED_QOS)
@@ -59,6 +87,16 @@ class OptimNode(FrodoNode):
                                  topics.LATCHED_QOS)
         self.create_subscription(PointCloud2, topics.OBJECT_CODES, self.guarded(self._on_codes, 'object_codes'),
                                  topics.LATCHED_QOS)
+        if self.params['sparse_enabled']:
+            for msg_type, topic, part in ((Image, topics.DETECTIONS, 'detections'),
+                                          (PointCloud2, topics.ASSOCIATIONS, 'associations'),
+                                          (PoseStamped, self.params['pose_topic'], 'pose')):
+                self.create_subscription(msg_type, topic, self.guarded(lambda m, p=part: self._on_frame_part(m, p), part),
+                                         topics.FRAME_QOS)
+            self.create_subscription(CameraInfo, self.params['camera_info_topic'],
+                                     self.guarded(self._on_camera_info, 'camera_info'), topics.FRAME_QOS)
+            self.create_subscription(PointCloud2, self.params['slam_points_topic'],
+                                     self.guarded(self._on_slam_points, 'slam_points'), topics.FRAME_QOS)
         self.worker = threading.Thread(target=self._work, name='optim_worker', daemon=True)
         self.worker.start()
 
@@ -101,6 +139,66 @@ class OptimNode(FrodoNode):
                     self.pending.add(oid)
             self.cond.notify()
 
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        self.frames.camera_info = (conv.camera_info_to_K(msg), (int(msg.width), int(msg.height)))
+
+    def _on_slam_points(self, msg: PointCloud2) -> None:
+        points = conv.cloud_to_xyz(msg)
+        with self.cond:
+            self.slam_points = points[np.isfinite(points).all(1)] if len(points) else points
+
+    def _on_frame_part(self, msg, part: str) -> None:
+        self.count(f'{part}_received')
+        stamp = conv.stamp_to_ns(msg.header.stamp)
+        if part == 'associations' and stamp in self.frames.completed:
+            rows = conv.cloud_to_table(msg)       # a re-send after merges: move the stored views
+            owners = {int(r['label']): (int(r['object_id']), bool(r['kept'])) for r in rows}
+            with self.cond:
+                self.view_store.assign(stamp, owners)
+            return
+        frame = self.frames.add(stamp, part, msg)
+        if frame is not None:
+            try:
+                self._extract_views(frame)
+            finally:
+                self.frames.frames.pop(stamp, None)   # free the image (the stamp stays marked complete)
+
+    def _extract_views(self, frame) -> None:
+        """Compact sparse-stage views (mask samples + distance transform) of a frame's kept associated masks."""
+        if self.frames.camera_info is None:
+            self.count('frames_without_camera_info')
+            return
+        K, (width, height) = self.frames.camera_info
+        det = frame.parts['detections']
+        if det.encoding != '16UC1':
+            raise conv.ConversionError(f'detections encoding must be 16UC1, got {det.encoding!r}')
+        labels = conv.image_to_numpy(det)
+        if labels.shape != (height, width):
+            raise conv.ConversionError(f'detections {labels.shape[1]}x{labels.shape[0]} do not match '
+                                       f'camera_info {width}x{height}')
+        T = conv.pose_to_matrix(frame.parts['pose'].pose)
+        if not np.isfinite(T).all():
+            raise conv.ConversionError('non-finite camera pose')
+        rows = conv.cloud_to_table(frame.parts['associations'])
+        detected = labels > 0
+        for r in rows:   # all rows: ids of past frames are assigned or changed later by re-sends
+            mask = labels == r['label']
+            view = view_from_mask(K, T, mask, int(self.params['sparse_mask_samples']), detected & ~mask, self.rng)
+            if view is None:
+                self.count('views_rejected')
+                continue
+            with self.cond:
+                self.view_store.add(frame.stamp_ns, int(r['label']), int(r['object_id']), bool(r['kept']), view)
+            self.count('views_stored')
+
+    def sparse_config(self) -> SparseConfig:
+        p = self.params
+        return SparseConfig(iterations=int(p['sparse_iterations']), max_views=int(p['sparse_views']),
+                            mask_samples=int(p['sparse_mask_samples']), point_samples=int(p['sparse_point_samples']),
+                            yaw_candidates=int(p['sparse_yaw_candidates']), w_silhouette=float(p['sparse_w_silhouette']),
+                            w_geometry=float(p['sparse_w_geometry']), w_code=float(p['sparse_w_code']),
+                            optimise_code=bool(p['sparse_optimise_code']))
+
     # ------------------------------------------------------------ worker
     def _work(self) -> None:
         while True:
@@ -142,7 +240,43 @@ class OptimNode(FrodoNode):
         known = category_by_id(category)
         estimate = fused_estimate(oid, known.name if known else class_name, category, code, views, mesh, box)
         estimate.timings['fused_s'] = time.perf_counter() - start
-        self.estimates[oid] = estimate
+        previous = self.estimates.get(oid)
+        if previous is None or previous.stage == 'fused' or not self.params['sparse_enabled']:
+            self.estimates[oid] = estimate        # a refined object keeps its last refinement until the next one
+            self._publish()
+        if self.params['sparse_enabled']:
+            self._sparse(estimate, code, box)
+
+    def _sparse(self, fused: ObjectEstimate, code: np.ndarray, box) -> None:
+        """Sparse stage of one object after its fused stage; publishes the refined estimate when it succeeds."""
+        with self.cond:
+            views = self.view_store.views_of(fused.object_id)
+            slam = self.slam_points
+        t0 = time.perf_counter()
+        result = refine(self.prior, code, box, views, slam, self.sparse_config())
+        self.count('sparse_runs')
+        if not result.ok:
+            self.count('sparse_fallbacks')
+            self.sparse_info[fused.object_id] = result.reason
+            if fused.object_id not in self.estimates or self.estimates[fused.object_id].stage != 'fused':
+                self.estimates[fused.object_id] = fused
+                self._publish()
+            return
+        mesh = self.prior.mesh(result.code, resolution=int(self.params['mesh_resolution']))
+        if mesh is None or len(mesh.faces) == 0:
+            self.report_error(f'object {fused.object_id}', 'refined code decodes to no surface; fused result kept',
+                              counter='warnings')
+            return
+        mesh_world = mesh.copy()
+        mesh_world.apply_transform(result.T_world_object)
+        estimate = ObjectEstimate(fused.object_id, fused.class_name, fused.category, result.code,
+                                  result.T_world_object, result.scale, world_box(mesh, result.T_world_object, result.yaw),
+                                  fused.num_views, 'sparse', mesh_world,
+                                  dict(fused.timings, sparse_s=time.perf_counter() - t0))
+        e0, e1 = result.initial_energies.get('total', np.nan), result.energies.get('total', np.nan)
+        self.sparse_info[fused.object_id] = (f'{result.views} views, {result.iterations} it, E {e0:.3f}->{e1:.3f}, '
+                                             f'{result.seconds:.2f}s')
+        self.estimates[fused.object_id] = estimate
         self._publish()
 
     # ------------------------------------------------------------ outputs
@@ -176,8 +310,14 @@ class OptimNode(FrodoNode):
     def diagnostic_values(self) -> dict:
         with self.cond:
             state = 'busy' if (self.busy or self.pending) else 'idle'
-            return {'state': state, 'pending_objects': len(self.pending) + int(self.busy),
-                    'objects': len(self.estimates), 'tracks': len(self.tracks)}
+            values = {'state': state, 'pending_objects': len(self.pending) + int(self.busy),
+                      'objects': len(self.estimates), 'tracks': len(self.tracks),
+                      'sparse_objects': sum(e.stage == 'sparse' for e in self.estimates.values()),
+                      'views_held': len(self.view_store)}
+            if self.sparse_info:
+                oid = max(self.sparse_info)
+                values['sparse_last'] = f'object {oid}: {self.sparse_info[oid]}'
+            return values
 
     def diagnostic_summary(self) -> tuple[int, str]:
         if not self.worker.is_alive() and not self.stopping:

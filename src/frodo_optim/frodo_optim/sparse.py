@@ -67,7 +67,7 @@ class SparseConfig:
 class View:
     """One kept associated detection: camera (K, T_world_camera) and the mask in compact form.
 
-    mask_uv (M, 2) float32 pixels sampled on the mask; dt (DT_SIZE, DT_SIZE) float32 distance to the mask
+    mask_uv (M, 2) float32 pixels sampled on the mask; dt (DT_SIZE, DT_SIZE) float16 distance to the mask
     (units of the box diagonal, 0 on the mask and where unknown) over the crop `crop` = (u0, v0, u1, v1);
     diag: detection box diagonal in pixels; image_size (width, height).
     """
@@ -141,7 +141,7 @@ def view_from_mask(K, T_world_camera, mask: np.ndarray, n_samples: int = 128, un
     dt = np.zeros((DT_SIZE, DT_SIZE), np.float32)          # outside the image: unknown
     ii, jj = np.nonzero(inside)
     dt[ii, jj] = dist[iv[ii] - cy0, iu[jj] - cx0]
-    return View(K, T, mask_uv, dt, tuple(float(c) for c in crop), diag, (int(w), int(h)))
+    return View(K, T, mask_uv, dt.astype(np.float16), tuple(float(c) for c in crop), diag, (int(w), int(h)))
 
 
 def select_views(views: list, max_views: int) -> list:
@@ -165,7 +165,7 @@ class _Batch:
         self.c = torch.as_tensor(K[:, :2, 2], dtype=torch.float32)                 # (V, 2)
         self.mask_uv = torch.as_tensor(np.stack([v.mask_uv for v in views]))      # (V, M, 2)
         self.mask_u, self.mask_v = self.mask_uv[..., 0].contiguous(), self.mask_uv[..., 1].contiguous()
-        self.dt = torch.as_tensor(np.stack([v.dt for v in views]))[:, None]       # (V, 1, S, S)
+        self.dt = torch.as_tensor(np.stack([v.dt for v in views]).astype(np.float32))[:, None]       # (V, 1, S, S)
         crop = np.array([v.crop for v in views], dtype=np.float32)
         self.crop_lo = torch.as_tensor(crop[:, :2])[:, None]                       # (V, 1, 2)
         self.crop_hi = torch.as_tensor(crop[:, 2:])[:, None]
@@ -365,3 +365,56 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
     return SparseResult(zb.cpu().numpy().astype(np.float32), pose_matrix(yb, tb, s), float(s), yb, tb,
                         energies=terms_b, initial_energies=initial_terms, init_yaw=yaw0, iterations=done,
                         best_iteration=best_it, views=len(views), seconds=time.perf_counter() - start)
+
+
+class ViewStore:
+    """Bounded per-object view memory for the sparse stage (keys (stamp_ns, label) -> View, owner, kept flag).
+
+    Every detection's view is stored, also before the association confirms its object (owner -1), because
+    the association assigns ids to past frames later (re-sends). An object keeps at most `per_object` views:
+    past that, every second one (in stamp order) is dropped, so the kept views stay spread over the
+    trajectory. At most `capacity` views in all: the oldest unowned ones go first, then the oldest.
+    """
+
+    def __init__(self, per_object: int = 64, capacity: int = 2000):
+        self.per_object = max(2, int(per_object))
+        self.capacity = max(1, int(capacity))
+        self.views: dict[tuple[int, int], View] = {}
+        self.owner: dict[tuple[int, int], tuple[int, bool]] = {}
+
+    def add(self, stamp: int, label: int, object_id: int, kept: bool, view: View) -> None:
+        key = (int(stamp), int(label))
+        self.views[key] = view
+        self.owner[key] = (int(object_id), bool(kept))
+        self._thin(int(object_id))
+        while len(self.views) > self.capacity:
+            unowned = [k for k, (o, _) in self.owner.items() if o < 0]
+            self._drop(min(unowned) if unowned else min(self.views))
+
+    def assign(self, stamp: int, owners: dict[int, tuple[int, bool]]) -> None:
+        """New (object id, kept) per label of a stamp's stored views (labels not listed: unowned)."""
+        changed = set()
+        for key in [k for k in self.views if k[0] == stamp]:
+            self.owner[key] = owners.get(key[1], (-1, False))
+            changed.add(self.owner[key][0])
+        for oid in changed:
+            self._thin(oid)
+
+    def views_of(self, object_id: int) -> list[View]:
+        """The object's kept views in stamp order."""
+        return [self.views[k] for k in sorted(self.views) if self.owner.get(k) == (object_id, True)]
+
+    def _thin(self, object_id: int) -> None:
+        if object_id < 0:
+            return
+        mine = sorted(k for k, (o, _) in self.owner.items() if o == object_id)
+        if len(mine) > self.per_object:
+            for k in mine[1::2]:
+                self._drop(k)
+
+    def _drop(self, key) -> None:
+        self.views.pop(key, None)
+        self.owner.pop(key, None)
+
+    def __len__(self) -> int:
+        return len(self.views)

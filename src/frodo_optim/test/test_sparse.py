@@ -96,3 +96,16 @@ def test_diverging_optimisation_falls_back_to_the_best_state(prior, chair_scene)
     res = refine(prior, chair_scene['code'], chair_scene['box'], chair_scene['views'], config=cfg)
     assert res.ok and res.energies['total'] <= res.initial_energies['total']
     assert np.isfinite(res.T_world_object).all() and np.isfinite(res.code).all()
+
+
+def test_view_store_is_bounded_and_follows_reassociation(chair_scene):
+    from frodo_optim.sparse import ViewStore
+    v = chair_scene['views'][0]
+    store = ViewStore(per_object=8, capacity=30)
+    for stamp in range(20):
+        store.add(stamp, 257, 1, True, v)             # object 1, kept
+        store.add(stamp, 513, -1, False, v)           # not yet associated
+    mine = store.views_of(1)
+    assert 2 <= len(mine) <= 8 and len(store) <= 30
+    store.assign(19, {513: (2, True)})                 # a re-send: the association confirmed object 2
+    assert len(store.views_of(2)) == 1 and len(store.views_of(1)) == len(mine) - 1
