@@ -1,7 +1,8 @@
 """Shape node and optimiser node together in a real rclpy graph, with the shipped furniture prior.
 
-Frames of the demo bag (image, instance labels) and one object's association rows and box go in; per-frame
-codes, fused object codes, a placed mesh on /frodo/objects, /frodo/boxes and /frodo/object_states come out,
+Frames of the demo bag (image, instance labels, camera pose and intrinsics) and one object's association rows
+and box go in; per-frame codes, fused object codes, a placed mesh on /frodo/objects, /frodo/boxes and
+/frodo/object_states come out (first the fused placement, then the sparse stage's refinement, paper Sec. 4.3),
 and the mesh scores well against the bag's ground truth (CONTRACT.md protocol). Bad input (detections of
 another size than the image, a box with NaN) is reported on /diagnostics and survived.
 """
@@ -14,7 +15,8 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
-from sensor_msgs.msg import Image, PointCloud2
+from geometry_msgs.msg import PoseStamped
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from visualization_msgs.msg import Marker, MarkerArray
 
 from frodo_association.core import ASSOCIATION_DTYPE
@@ -33,8 +35,8 @@ OBJECT_ID = 7
 
 
 def demo_frames(n_frames: int = 6):
-    """(stamp, image msg, instances, the table's label, its box) for n frames showing the bag's last
-    ground-truth table, and that table's ground-truth box."""
+    """(stamp, image msg, instances, the table's label, its box, the SynthFrame with K and pose) for n frames
+    showing the bag's last ground-truth table, and that table's ground-truth box."""
     scene, _ = scene_from_bag(BAG)
     target = next(k for k, o in reversed(list(enumerate(scene.objects))) if o.coco_id == TABLE_CLASS)
     images = {conv.stamp_to_ns(m.decode().header.stamp): m.decode()
@@ -45,7 +47,7 @@ def demo_frames(n_frames: int = 6):
         if labels and f.stamp in images:
             ys, xs = np.nonzero(f.instances == labels[0])
             frames.append((f.stamp, images[f.stamp], f.instances, labels[0],
-                           (xs.min(), ys.min(), xs.max() + 1, ys.max() + 1)))
+                           (xs.min(), ys.min(), xs.max() + 1, ys.max() + 1), f))
     step = max(1, len(frames) // n_frames)
     return frames[::step][:n_frames], scene.objects[target]
 
@@ -80,6 +82,8 @@ def test_shape_and_optimiser_nodes_reconstruct_an_object_from_the_demo_bag():
         det_pub = probe.create_publisher(Image, topics.DETECTIONS, topics.FRAME_QOS)
         assoc_pub = probe.create_publisher(PointCloud2, topics.ASSOCIATIONS, topics.FRAME_QOS)
         tracks_pub = probe.create_publisher(MarkerArray, topics.TRACKS, topics.LATCHED_QOS)
+        info_pub = probe.create_publisher(CameraInfo, topics.CAMERA_INFO, topics.FRAME_QOS)
+        pose_pub = probe.create_publisher(PoseStamped, topics.POSE, topics.FRAME_QOS)
 
         def spin_until(cond, timeout=30.0):
             deadline = time.time() + timeout
@@ -94,13 +98,18 @@ def test_shape_and_optimiser_nodes_reconstruct_an_object_from_the_demo_bag():
         assert spin_until(lambda: image_pub.get_subscription_count() > 0 and assoc_pub.get_subscription_count() > 0
                           and tracks_pub.get_subscription_count() > 0)
         # Bad input first: detections of another size than the image.
-        stamp0, image0, instances0, label0, bbox0 = frames[0]
+        stamp0, image0, instances0, label0, bbox0, frame0 = frames[0]
         bad_stamp = stamp0 - 1
         image_pub.publish(conv.numpy_to_image(np.zeros((4, 4, 3), np.uint8), 'rgb8', bad_stamp, 'camera'))
         det_pub.publish(conv.numpy_to_image(instances0, '16UC1', bad_stamp, 'camera'))
         assoc_pub.publish(association_table(bad_stamp, label0, bbox0, gt_box.center))
         assert spin_until(lambda: int(status('shape_node').get('errors', 0)) >= 1)
-        for stamp, image, instances, label, bbox in frames:
+        assert spin_until(lambda: info_pub.get_subscription_count() > 0 and pose_pub.get_subscription_count() > 0)
+        info_pub.publish(conv.make_camera_info(frame0.K, *frame0.size, stamp0, 'camera'))
+        for _ in range(5):
+            executor.spin_once(timeout_sec=0.01)
+        for stamp, image, instances, label, bbox, frame in frames:
+            pose_pub.publish(conv.make_pose_stamped(frame.T_world_camera_observed, stamp, 'world'))
             image_pub.publish(image)
             det_pub.publish(conv.numpy_to_image(instances, '16UC1', stamp, 'camera'))
             assoc_pub.publish(association_table(stamp, label, bbox, gt_box.center))
@@ -118,7 +127,8 @@ def test_shape_and_optimiser_nodes_reconstruct_an_object_from_the_demo_bag():
                                       'world')
         tracks_pub.publish(MarkerArray(markers=[nan_box, good_box]))
         assert spin_until(lambda: objects and any(m.id == OBJECT_ID for m in objects[-1].markers)
-                          and status('optim_node').get('state') == 'idle', timeout=60.0)
+                          and status('optim_node').get('state') == 'idle'
+                          and status('optim_node').get('sparse_objects') == '1', timeout=90.0), status('optim_node')
         assert int(status('optim_node')['errors']) >= 1       # the NaN box
         mesh_marker = next(m for m in objects[-1].markers if m.id == OBJECT_ID)
         assert mesh_marker.type == Marker.TRIANGLE_LIST and mesh_marker.header.frame_id == 'world'
@@ -126,7 +136,10 @@ def test_shape_and_optimiser_nodes_reconstruct_an_object_from_the_demo_bag():
         assert len(faces) > 500 and np.isfinite(vertices).all()
         assert [m.id for m in boxes[-1].markers if m.action == Marker.ADD] == [OBJECT_ID]
         state = conv.cloud_to_table(states[-1])
-        assert list(state['object_id']) == [OBJECT_ID] and STAGES[state['stage'][0]] == 'fused'
+        assert list(state['object_id']) == [OBJECT_ID] and STAGES[state['stage'][0]] == 'sparse'
+        stages = [STAGES[t['stage'][0]] for t in map(conv.cloud_to_table, states) if len(t)]
+        assert stages.index('fused') < stages.index('sparse')        # the fused placement is published first
+        assert int(status('optim_node')['views_held']) >= 4
 
         import trimesh
         gt = [o for o in load_ground_truth_bag(BAG) if o.class_name == 'dining table']
