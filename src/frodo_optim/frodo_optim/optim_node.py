@@ -140,7 +140,11 @@ class OptimNode(FrodoNode):
             self.cond.notify()
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
+        first = self.frames.camera_info is None
         self.frames.camera_info = (conv.camera_info_to_K(msg), (int(msg.width), int(msg.height)))
+        if first:   # frames completed before the first camera info were held in the cache
+            for frame in self.frames.complete_frames():
+                self._views_of_frame(frame)
 
     def _on_slam_points(self, msg: PointCloud2) -> None:
         points = conv.cloud_to_xyz(msg)
@@ -158,16 +162,19 @@ class OptimNode(FrodoNode):
             return
         frame = self.frames.add(stamp, part, msg)
         if frame is not None:
-            try:
-                self._extract_views(frame)
-            finally:
-                self.frames.frames.pop(stamp, None)   # free the image (the stamp stays marked complete)
+            if self.frames.camera_info is None:
+                self.count('frames_waiting_for_camera_info')   # held (bounded by the cache) until it arrives
+                return
+            self._views_of_frame(frame)
+
+    def _views_of_frame(self, frame) -> None:
+        try:
+            self._extract_views(frame)
+        finally:
+            self.frames.frames.pop(frame.stamp_ns, None)   # free the image (the stamp stays marked complete)
 
     def _extract_views(self, frame) -> None:
         """Compact sparse-stage views (mask samples + distance transform) of a frame's kept associated masks."""
-        if self.frames.camera_info is None:
-            self.count('frames_without_camera_info')
-            return
         K, (width, height) = self.frames.camera_info
         det = frame.parts['detections']
         if det.encoding != '16UC1':
