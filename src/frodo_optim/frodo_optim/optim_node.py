@@ -52,6 +52,7 @@ PARAMS = (
     ParamSpec('sparse_w_geometry', 0.5, 'Weight of the SLAM-point energy Eg (truncated 3D chamfer); 0 disables.'),
     ParamSpec('sparse_w_code', 0.01, 'Weight of the code regulariser Er (squared code z-score w.r.t. training codes).'),
     ParamSpec('sparse_optimise_code', True, 'Optimise the shape code too (false: pose only).'),
+    ParamSpec('sparse_lr_code', 0.005, 'Adam step size of the shape code in the sparse stage.'),
     ParamSpec('camera_info_topic', topics.CAMERA_INFO, 'Camera intrinsics topic.'),
     ParamSpec('pose_topic', topics.POSE, 'Camera pose topic (T_world_camera, optical frame).'),
     ParamSpec('slam_points_topic', topics.SLAM_POINTS, 'SLAM landmarks topic (whole map per message).'),
@@ -204,7 +205,7 @@ class OptimNode(FrodoNode):
                             mask_samples=int(p['sparse_mask_samples']), point_samples=int(p['sparse_point_samples']),
                             yaw_candidates=int(p['sparse_yaw_candidates']), w_silhouette=float(p['sparse_w_silhouette']),
                             w_geometry=float(p['sparse_w_geometry']), w_code=float(p['sparse_w_code']),
-                            optimise_code=bool(p['sparse_optimise_code']))
+                            optimise_code=bool(p['sparse_optimise_code']), lr_code=float(p['sparse_lr_code']))
 
     # ------------------------------------------------------------ worker
     def _work(self) -> None:

@@ -55,7 +55,7 @@ class SparseConfig:
     w_geometry: float = 0.5
     w_code: float = 0.01
     geometry_truncation: float = 0.1  # metres
-    lr_code: float = 0.02
+    lr_code: float = 0.005
     lr_translation: float = 0.01      # metres per step (Adam)
     lr_yaw: float = 0.02              # radians per step
     lr_log_scale: float = 0.01
