@@ -106,3 +106,17 @@ def test_wait_for_subscribers_reports_unmatched_topics(tmp_path, session):
     assert time.monotonic() - started < 1.0
     session.node.create_subscription(Image, topics.IMAGE, lambda _: None, topics.FRAME_QOS)
     assert wait_until(lambda: player.unmatched_topics([topics.IMAGE]) == [], 5)
+
+
+def test_wait_for_subscribers_settles_until_matches_stop_changing(tmp_path, session):
+    write_contract_bag(tmp_path / 'a.mcap', frames=2)
+    player = Player(session.node, tmp_path / 'a.mcap', rate=0, progress=False)
+    session.node.create_subscription(Image, topics.IMAGE, lambda _: None, topics.FRAME_QOS)
+    late = threading.Timer(0.5, lambda: session.node.create_subscription(Image, topics.IMAGE, lambda _: None,
+                                                                         topics.FRAME_QOS))
+    late.start()
+    assert player.wait_for_subscribers(10, wanted=[topics.IMAGE], settle=1.5) == []
+    late.join()
+    # The second subscription came during the settle time: it is matched before playback may start.
+    assert player.played_topics([topics.IMAGE, topics.INSTANCES]) == [topics.IMAGE]
+    assert player._publishers[topics.IMAGE].get_subscription_count() == 2

@@ -208,16 +208,29 @@ class Player:
         return unmatched
 
     def wait_for_subscribers(self, timeout: float, wanted: Iterable[str] | None = None,
-                             stop: threading.Event | None = None) -> list[str]:
-        """Wait until `unmatched_topics(wanted)` is empty (nothing is lost at startup); returns what is left."""
+                             stop: threading.Event | None = None, settle: float = 0.0) -> list[str]:
+        """Wait until `unmatched_topics(wanted)` is empty (nothing is lost at startup); returns what is left.
+
+        With `settle` > 0, the match counts must also stay unchanged for `settle` seconds: discovery reports
+        the subscriptions of one node one by one, so a first full match may still miss some of them.
+        """
         wanted = list(wanted) if wanted is not None else None
         deadline = time.monotonic() + timeout
         stop = stop or threading.Event()
+        counts, since = None, time.monotonic()
         while True:
             unmatched = self.unmatched_topics(wanted)
-            if not unmatched or time.monotonic() >= deadline or stop.is_set():
+            now = time.monotonic()
+            current = {t: p.get_subscription_count() for t, p in self._publishers.items()}
+            if unmatched or current != counts:
+                counts, since = current, now
+            if (not unmatched and now - since >= settle) or now >= deadline or stop.is_set():
                 return unmatched
             stop.wait(0.05)
+
+    def played_topics(self, candidates: Iterable[str]) -> list[str]:
+        """The output names of those `candidates` (bag topic names) this player publishes."""
+        return [self.output_topic(t) for t in candidates if t in self._publishers]
 
     # ------------------------------------------------------------------ playback
     def play(self, stop: threading.Event | None = None) -> PlayStats:

@@ -37,6 +37,8 @@ EXIT_OK, EXIT_GRAPH_FAILED, EXIT_NOT_DONE, EXIT_INTERRUPTED = 0, 1, 3, 130
 RECORDING_FILE = 'frodo.rrd'
 # Seconds to wait, once every node has reported, for the player's topics to match the nodes' subscriptions.
 SUBSCRIPTION_MATCH_TIMEOUT = 10.0
+# Seconds the player's subscription matches must stay unchanged before playing (see Player.wait_for_subscribers).
+SUBSCRIPTION_SETTLE = 1.0
 # Consecutive reports (after the bag ended) of an idle optimiser and unchanged node counters that mean "done".
 DONE_REPORTS = 2
 
@@ -185,7 +187,10 @@ def _play_and_wait(player: Player, collector: OutputCollector, launcher: Launche
         launcher.log(f'no diagnostics from {", ".join(missing)} after {startup_timeout:.0f} s; playing anyway')
     for problem in player.problems:
         launcher.log(f'bag: {problem}')
-    unmatched = player.wait_for_subscribers(SUBSCRIPTION_MATCH_TIMEOUT, wanted=[topics.IMAGE], stop=stop)
+    inputs = player.played_topics((topics.IMAGE, topics.CAMERA_INFO, topics.POSE, topics.INSTANCES,
+                                     topics.SLAM_POINTS))
+    unmatched = player.wait_for_subscribers(SUBSCRIPTION_MATCH_TIMEOUT, wanted=inputs, stop=stop,
+                                            settle=SUBSCRIPTION_SETTLE)
     if unmatched:
         launcher.log(f'subscribers of {", ".join(unmatched)} not matched after {SUBSCRIPTION_MATCH_TIMEOUT:.0f} s '
                      '(QoS mismatch?); playing anyway')
