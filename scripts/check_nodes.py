@@ -29,9 +29,9 @@ def main() -> int:
     os.environ.setdefault('ROS_DOMAIN_ID', str(random.randint(50, 100)))
     rclpy.init()
     node = rclpy.create_node('frodo_node_check')
-    seen: set[str] = set()
-    node.create_subscription(DiagnosticArray, '/diagnostics',
-                             lambda m: seen.update(s.name for s in m.status), 50)
+    seen: set[tuple[str, str]] = set()   # (node name, pid) of each report: only our own process counts
+    node.create_subscription(DiagnosticArray, '/diagnostics', lambda m: seen.update(
+        (s.name, next((kv.value for kv in s.values if kv.key == 'pid'), '')) for s in m.status), 50)
     failures = []
     for package, exe, extra in NODES:
         path = install / package / 'lib' / package / exe
@@ -41,9 +41,9 @@ def main() -> int:
         proc = subprocess.Popen([str(path), *extra], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                                 start_new_session=True, env=os.environ.copy())
         deadline = time.time() + 60
-        while exe not in seen and time.time() < deadline and proc.poll() is None:
+        while (exe, str(proc.pid)) not in seen and time.time() < deadline and proc.poll() is None:
             rclpy.spin_once(node, timeout_sec=0.2)
-        up = exe in seen
+        up = (exe, str(proc.pid)) in seen
         os.killpg(proc.pid, signal.SIGINT)
         try:
             out, _ = proc.communicate(timeout=15)

@@ -123,6 +123,26 @@ def test_node_ignoring_sigint_gets_sigterm_after_the_timeout(tmp_path, probe):
     assert not _alive(launcher.pids.values())
 
 
+def test_nodes_stop_on_sigint_even_when_started_with_sigint_ignored(tmp_path, probe):
+    """Processes started in the background by a non-interactive shell (CI runners) inherit SIGINT ignored;
+    a node must still stop on Ctrl-C, also when it comes while the node is being built."""
+    params = tmp_path / 'slow.yaml'
+    params.write_text('slow:\n  ros__parameters:\n    startup_delay: 3.0\n')
+    output = io.StringIO()
+    launcher = Launcher([stub('slow')], [params], sigint_timeout=15.0, output=output)
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)   # inherited by the node process
+    try:
+        launcher.start()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert wait_until(lambda: 'slow' in probe.get_node_names(), 20)   # constructing: joined, not spinning
+    started = time.monotonic()
+    assert launcher.shutdown(timeout=20)
+    assert time.monotonic() - started < 10, output.getvalue()        # not the SIGTERM escalation
+    assert 'did not stop' not in output.getvalue() and not launcher.failures
+    assert not _alive(launcher.pids.values())
+
+
 def test_bad_launch_options_are_explained(tmp_path):
     with pytest.raises(GraphError, match='unknown node'):
         select_nodes(['detection_node', 'nope'])

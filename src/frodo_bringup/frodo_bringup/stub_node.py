@@ -28,6 +28,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec('crash_code', 3, 'Exit code used by crash_after.'),
     ParamSpec('act_as_optimiser', False, 'Report state/pending_objects and publish one object after images.'),
     ParamSpec('busy_for', 0.5, 'As optimiser: seconds after the last image during which state is busy.'),
+    ParamSpec('startup_delay', 0.0, 'Seconds the constructor takes (a node loading a big model).'),
     ParamSpec('ignore_sigint', False, 'Ignore SIGINT (a node that hangs on Ctrl-C; SIGTERM still stops it).'),
 )
 TETRAHEDRON_VERTICES = np.array([[0.0, 0.0, 0.0], [0.4, 0.0, 0.0], [0.0, 0.4, 0.0], [0.0, 0.0, 0.4]]) + [1, 2, 0]
@@ -46,6 +47,7 @@ class StubNode(FrodoNode):
         self.boxes_pub = self.create_publisher(MarkerArray, topics.BOXES, topics.LATCHED_QOS)
         if self.params['crash_after'] > 0:
             self.create_timer(float(self.params['crash_after']), self.crash)
+        time.sleep(float(self.params['startup_delay']))
         if self.params['ignore_sigint']:
             signal.signal(signal.SIGINT, signal.SIG_IGN)
 

@@ -7,6 +7,8 @@ keep it as `last_error` in diagnostics and return.
 from __future__ import annotations
 
 import functools
+import os
+import signal
 import sys
 import threading
 import traceback
@@ -16,14 +18,17 @@ from typing import Any, Callable
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 
 from frodo_common import topics
 from frodo_common.params import COMMON_PARAMS, ParamSpec
 
 # Diagnostic levels as ints (the message field is a single byte).
 OK, WARN, ERROR = 0, 1, 2
+# Longest wait of the spin loop before the stop flag set by SIGINT / SIGTERM is seen (seconds).
+STOP_POLL_S = 0.1
 
 
 class FrodoNode(Node):
@@ -90,7 +95,7 @@ class FrodoNode(Node):
         try:
             level, message = self.diagnostic_summary()
             with self._lock:
-                values = {**dict(self.counters), 'last_error': self.last_error}
+                values = {**dict(self.counters), 'last_error': self.last_error, 'pid': os.getpid()}
             values.update(self.diagnostic_values())
             status = DiagnosticStatus(level=bytes([level]), name=self.get_name(), message=message,
                                       hardware_id=self.get_fully_qualified_name(),
@@ -103,15 +108,24 @@ class FrodoNode(Node):
 
 
 def run_node(node_factory: Callable[[], Node], args: list[str] | None = None, threads: int = 2) -> int:
-    """Init rclpy, spin the node until Ctrl-C / SIGTERM / external shutdown, then clean up; returns an exit code."""
-    rclpy.init(args=args if args is not None else sys.argv)
+    """Init rclpy, spin the node until Ctrl-C / SIGTERM / external shutdown, then clean up; returns an exit code.
+
+    SIGINT and SIGTERM only set a stop flag, checked between spins: a signal that arrives while the node is
+    still being built (loading a prior can take seconds) stops it as soon as it is up, instead of being
+    lost the way rclpy's own handlers lose it before the executor exists.
+    """
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    rclpy.init(args=args if args is not None else sys.argv, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
         node = node_factory()
-        executor = MultiThreadedExecutor(num_threads=threads)
+        executor = MultiThreadedExecutor(num_threads=threads) if threads > 1 else SingleThreadedExecutor()
         executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
+        while not stop.is_set() and rclpy.ok():
+            executor.spin_once(timeout_sec=STOP_POLL_S)
+    except ExternalShutdownException:
         pass
     finally:
         if node is not None:
