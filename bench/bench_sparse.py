@@ -11,7 +11,6 @@ import argparse
 import json
 import math
 import platform
-import time
 
 import numpy as np
 import torch

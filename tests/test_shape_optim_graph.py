@@ -6,7 +6,6 @@ and box go in; per-frame codes, fused object codes, a placed mesh on /frodo/obje
 and the mesh scores well against the bag's ground truth (CONTRACT.md protocol). Bad input (detections of
 another size than the image, a box with NaN) is reported on /diagnostics and survived.
 """
-import time
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +22,8 @@ from frodo_association.core import ASSOCIATION_DTYPE
 from frodo_association.evaluate import scene_from_bag
 from frodo_common import conversions as conv
 from frodo_common import topics
+from frodo_common.testing import latest_status
+from frodo_common.testing import spin_until as spin
 from frodo_common.bag import BagReader
 from frodo_common.evaluation import EvalObject, evaluate, load_ground_truth_bag
 from frodo_optim.optim_node import OptimNode
@@ -86,14 +87,10 @@ def test_shape_and_optimiser_nodes_reconstruct_an_object_from_the_demo_bag():
         pose_pub = probe.create_publisher(PoseStamped, topics.POSE, topics.FRAME_QOS)
 
         def spin_until(cond, timeout=30.0):
-            deadline = time.time() + timeout
-            while time.time() < deadline and not cond():
-                executor.spin_once(timeout_sec=0.05)
-            return cond()
+            return spin(executor, cond, timeout)
 
         def status(name):
-            reports = [s for m in diags for s in m.status if s.name == name]
-            return {kv.key: kv.value for kv in reports[-1].values} if reports else {}
+            return latest_status(diags, name)
 
         assert spin_until(lambda: image_pub.get_subscription_count() > 0 and assoc_pub.get_subscription_count() > 0
                           and tracks_pub.get_subscription_count() > 0)

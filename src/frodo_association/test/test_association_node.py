@@ -2,7 +2,6 @@
 (latest per stamp consistent with the ground truth; an empty table for an empty frame) and latched
 /frodo/tracks boxes out; bad input (wrong encoding, NaN pose, missing pose) is reported on /diagnostics and
 survived."""
-import time
 
 import numpy as np
 import rclpy
@@ -17,6 +16,8 @@ from frodo_association.association_node import AssociationNode
 from frodo_association.synthetic import make_scene
 from frodo_common import conversions as conv
 from frodo_common import topics
+from frodo_common.testing import latest_status
+from frodo_common.testing import spin_until as spin
 
 
 def test_association_node_end_to_end_and_bad_input():
@@ -39,14 +40,10 @@ def test_association_node_end_to_end_and_bad_input():
         info_pub = probe.create_publisher(CameraInfo, topics.CAMERA_INFO, topics.FRAME_QOS)
 
         def spin_until(cond, timeout=10.0):
-            deadline = time.time() + timeout
-            while time.time() < deadline and not cond():
-                executor.spin_once(timeout_sec=0.05)
-            return cond()
+            return spin(executor, cond, timeout)
 
         def status():
-            st = [s for m in diags for s in m.status if s.name == 'association_node']
-            return {kv.key: kv.value for kv in st[-1].values} if st else {}
+            return latest_status(diags, 'association_node')
 
         spin_until(lambda: det_pub.get_subscription_count() > 0 and info_pub.get_subscription_count() > 0)
         f0 = scene.frames[0]

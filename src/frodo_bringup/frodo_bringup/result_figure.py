@@ -12,7 +12,6 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-import numpy as np
 
 from frodo_common.evaluation import EvalObject, EvaluationResult, sample_surface
 

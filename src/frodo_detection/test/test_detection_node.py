@@ -1,6 +1,5 @@
 """The detection node in a real rclpy graph: every image frame with its instance image yields one
 /frodo/detections image with the same stamp; bad frames are reported on /diagnostics and skipped."""
-import time
 
 import numpy as np
 import pytest
@@ -12,6 +11,8 @@ from sensor_msgs.msg import Image
 
 from frodo_common import conversions as conv
 from frodo_common import topics
+from frodo_common.testing import latest_status
+from frodo_common.testing import spin_until as spin
 from frodo_detection.detection_node import DetectionNode
 
 CHAIR, PERSON = 62, 1
@@ -30,10 +31,7 @@ def graph():
             'instances': probe.create_publisher(Image, topics.INSTANCES, topics.FRAME_QOS)}
 
     def spin_until(cond, timeout=8.0):
-        deadline = time.time() + timeout
-        while time.time() < deadline and not cond():
-            executor.spin_once(timeout_sec=0.05)
-        return cond()
+        return spin(executor, cond, timeout)
 
     def add(node):
         executor.add_node(node)
@@ -48,8 +46,7 @@ def graph():
 
 
 def _status(got, name='detection_node'):
-    statuses = [s for m in got['diag'] for s in m.status if s.name == name]
-    return {kv.key: kv.value for kv in statuses[-1].values} if statuses else {}
+    return latest_status(got['diag'], name)
 
 
 def test_external_instances_are_filtered_and_bad_frames_survived(graph):
