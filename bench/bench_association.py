@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from frodo_association.core import Associator, detections_from_instances
+from frodo_association.tracker import Associator, detections_from_instances
 from frodo_association.synthetic import make_scene
 
 

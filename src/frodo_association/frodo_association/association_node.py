@@ -19,7 +19,8 @@ from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from visualization_msgs.msg import MarkerArray
 
-from frodo_association.core import CONFIG_DOC, AssociationConfig, Associator, detections_from_instances
+from frodo_association.config import CONFIG_DOC, AssociationConfig
+from frodo_association.tracker import Associator, detections_from_instances
 from frodo_common import conversions as conv
 from frodo_common import topics
 from frodo_common.categories import category_by_id

@@ -31,7 +31,9 @@ import cv2
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from frodo_association.core import AssociationConfig, Associator, box_iou, canonical_yaw, clip_boxes
+from frodo_association.boxes import box_iou, canonical_yaw, clip_boxes
+from frodo_association.config import AssociationConfig
+from frodo_association.tracker import Associator
 from frodo_association.synthetic import (BoxObject, SynthFrame, SynthScene, add_noise, make_furniture_scene,
                                         make_scene)
 from frodo_detection.core import FilterConfig, filter_instances, instance_boxes

@@ -1,0 +1,183 @@
+"""Upright 3D boxes from 2D detection boxes over several views: projection, clipping, IoU and the least-squares
+fit (numpy/scipy, no ROS).
+
+Boxes. Each published object gets an upright 3D box (centre, size (dx, dy, dz), yaw about gravity z), in
+the spirit of QuadricSLAM's boxes from 2D detections: initialised at the cluster centre with the class
+size prior and refined with scipy `least_squares` (soft-L1, analytic Jacobian) so that the projected box
+corners match the 2D detection boxes, edge by edge (edges at the image border are truncated and left
+out), with a weak pull to the cluster centre; objects stand on the floor plane z = floor_height when
+`objects_on_floor`. Boxes are refitted (`Associator.refine_boxes`, bounded per frame) when an object has
+grown by `box_refit_growth` since its last fit, from its kept detections when pruning leaves enough.
+
+Conventions: boxes (x0, y0, x1, y1) in pixel-edge coordinates (pixel (u, v) is the centre of column u, row
+v); world frame gravity aligned, z up; `T_world_camera` is the camera pose (optical frame).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from frodo_common.geometry import box_corners
+
+# Corner offsets of a unit box, in the corner order of frodo_common.geometry.box_corners.
+_BOX_SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64) / 2
+
+
+def project_boxes(K: np.ndarray, T_camera_world: np.ndarray, corners: np.ndarray,
+                  near: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """2D boxes (not clipped to the image) of 3D boxes seen by F cameras.
+
+    K: (F, 3, 3); T_camera_world: (F, 4, 4); corners: (O, 8, 3) world corners. Returns (boxes (F, O, 4),
+    valid (F, O)): a box is invalid when a corner is closer than `near` (the object reaches behind the camera).
+    """
+    pc = np.einsum('fij,okj->foki', T_camera_world[:, :3, :3], corners) + T_camera_world[:, None, None, :3, 3]
+    z = pc[..., 2]
+    zs = np.maximum(z, near)
+    u = K[:, None, None, 0, 0] * pc[..., 0] / zs + K[:, None, None, 0, 2]
+    v = K[:, None, None, 1, 1] * pc[..., 1] / zs + K[:, None, None, 1, 2]
+    boxes = np.stack([u.min(2), v.min(2), u.max(2), v.max(2)], axis=-1)
+    return boxes, np.all(z > near, axis=2)
+
+
+def clip_boxes(boxes: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """Boxes (..., O, 4) clipped to images of sizes (..., 2) (width, height)."""
+    lim = np.concatenate([sizes, sizes], axis=-1)[..., None, :] - 0.5
+    return np.clip(boxes, -0.5, lim)
+
+
+def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """IoU of boxes a (..., 4) and b (..., 4), broadcast over the leading axes (vectorised
+    `frodo_common.geometry.box_iou_2d`)."""
+    ix = np.clip(np.minimum(a[..., 2], b[..., 2]) - np.maximum(a[..., 0], b[..., 0]), 0, None)
+    iy = np.clip(np.minimum(a[..., 3], b[..., 3]) - np.maximum(a[..., 1], b[..., 1]), 0, None)
+    inter = ix * iy
+    union = (a[..., 2] - a[..., 0]) * (a[..., 3] - a[..., 1]) + (b[..., 2] - b[..., 0]) * (b[..., 3] - b[..., 1]) - inter
+    return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
+
+
+@dataclass
+class Box3D:
+    """Upright box: centre (3,), size (dx, dy, dz) (3,), yaw about z in [-pi/4, pi/4)."""
+
+    center: np.ndarray
+    size: np.ndarray
+    yaw: float
+
+    def corners(self) -> np.ndarray:
+        """(8, 3) world corners."""
+        return box_corners(self.center, self.size, self.yaw)
+
+
+def canonical_yaw(size: np.ndarray, yaw: float) -> tuple[np.ndarray, float]:
+    """Equivalent (size, yaw) with yaw in [-pi/4, pi/4): a quarter turn swaps dx and dy."""
+    size = np.asarray(size, dtype=np.float64).copy()
+    quarter = int(np.floor((yaw + np.pi / 4) / (np.pi / 2)))
+    yaw = yaw - quarter * np.pi / 2
+    if quarter % 2:
+        size[[0, 1]] = size[[1, 0]]
+    return size, float(yaw)
+
+
+def _box_projection(p: np.ndarray, R: np.ndarray, t: np.ndarray, f: np.ndarray, c: np.ndarray,
+                    floor_height: float | None, with_jacobian: bool = False):
+    """Projected 2D boxes of an upright 3D box (and their Jacobian w.r.t. the box parameters).
+
+    p: (P,) = (cx, cy, [cz], log dx, log dy, log dz, yaw) (cz omitted when the box stands on floor_height);
+    R: (V, 3, 3), t: (V, 3) camera-from-world; f, c: (V, 2) focal lengths and principal points.
+    Returns boxes (V, 4) = (min u, min v, max u, max v) over the 8 corners, or (boxes, jacobian (V, 4, P))
+    with `with_jacobian` (each edge follows its extreme corner).
+    """
+    on_floor = floor_height is not None
+    size = np.exp(p[-4:-1])
+    yaw = p[-1]
+    center = np.array([p[0], p[1], floor_height + size[2] / 2 if on_floor else p[2]])
+    cos, sin = np.cos(yaw), np.sin(yaw)
+    rot = np.array([[cos, -sin, 0.0], [sin, cos, 0.0], [0.0, 0.0, 1.0]])
+    local = _BOX_SIGNS * size                                           # (8, 3)
+    pc = np.einsum('vij,kj->vki', R, local @ rot.T + center) + t[:, None, :]   # (V, 8, 3)
+    z = np.maximum(pc[..., 2], 0.05)
+    xy = pc[..., :2] / z[..., None]
+    uv = xy * f[:, None, :] + c[:, None, :]                             # (V, 8, 2)
+    lo = np.argmin(uv, axis=1)                                          # (V, 2) extreme corner per axis
+    hi = np.argmax(uv, axis=1)
+    v_idx = np.arange(len(R))[:, None]
+    axis = np.arange(2)[None, :]
+    boxes = np.concatenate([uv[v_idx, lo, axis], uv[v_idx, hi, axis]], axis=1)
+    if not with_jacobian:
+        return boxes
+    n_c = 2 if on_floor else 3
+    dX = np.zeros((8, 3, len(p)))                                       # d corner / d p
+    dX[:, np.arange(n_c), np.arange(n_c)] = 1.0
+    dX[:, :, n_c:n_c + 3] = rot[None, :, :] * local[:, None, :]
+    if on_floor:
+        dX[:, 2, n_c + 2] += size[2] / 2
+    dX[:, :, -1] = local @ np.array([[-sin, -cos, 0.0], [cos, -sin, 0.0], [0.0, 0.0, 0.0]]).T
+    corner = np.concatenate([lo, hi], axis=1)                           # (V, 4)
+    comp = np.array([0, 1, 0, 1])
+    dP = np.einsum('vij,vejp->veip', R, dX[corner])                     # (V, 4, 3, P)
+    xy_e = xy[np.arange(len(R))[:, None], corner, comp[None, :]]        # (V, 4)
+    z_e = z[np.arange(len(R))[:, None], corner]
+    f_e = f[:, comp]
+    dP_c = np.take_along_axis(dP, comp[None, :, None, None].repeat(len(R), 0), axis=2)[:, :, 0]
+    jac = (dP_c - xy_e[..., None] * dP[:, :, 2]) * (f_e / z_e)[..., None]
+    return boxes, jac
+
+
+def fit_box(K: np.ndarray, T_camera_world: np.ndarray, boxes: np.ndarray, edge_valid: np.ndarray,
+            size_range: tuple[float, float], init_center: np.ndarray, floor_height: float | None = None,
+            size_prior_weight: float = 0.05, anchor_weight: float = 1.0, init: Box3D | None = None) -> Box3D:
+    """Upright 3D box whose projection matches 2D detection boxes over several views.
+
+    K: (V, 3, 3); T_camera_world: (V, 4, 4); boxes: (V, 4) detection boxes; edge_valid: (V, 4) bool, False
+    for truncated edges; size_range: the class's (S_min, S_max); init_center: (3,) (the cluster centre);
+    floor_height: the box bottom is fixed at this z when given; init: a previous box to start from.
+    Residuals: per valid edge, (projected box edge - detection edge) / detection box diagonal, soft-L1
+    loss; plus size_prior_weight * log(size / prior) per dimension with prior = sqrt(S_min * S_max), and
+    anchor_weight * (centre - init_center) (metres) per free centre coordinate.
+    Analytic Jacobian (the extreme corner of each edge). Yaw starts at 0 and pi/4 (a box is symmetric
+    under quarter turns) unless `init` is given.
+    """
+    prior = np.full(3, np.sqrt(size_range[0] * size_range[1]))
+    diag = np.maximum(np.hypot(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]), 1.0)
+    R = T_camera_world[:, :3, :3]
+    t = T_camera_world[:, :3, 3]
+    f = np.stack([K[:, 0, 0], K[:, 1, 1]], axis=1)
+    c = np.stack([K[:, 0, 2], K[:, 1, 2]], axis=1)
+    on_floor = floor_height is not None
+    n_center = 2 if on_floor else 3
+    prior_jac = np.zeros((3 + n_center, n_center + 4))
+    prior_jac[:3, n_center:n_center + 3] = size_prior_weight * np.eye(3)
+    prior_jac[3:, :n_center] = anchor_weight * np.eye(n_center)
+    anchor = np.asarray(init_center, dtype=np.float64)[:n_center]
+
+    def residuals(p):
+        proj = _box_projection(p, R, t, f, c, floor_height)
+        r = ((proj - boxes) / diag[:, None])[edge_valid]
+        return np.concatenate([r, size_prior_weight * (p[n_center:n_center + 3] - np.log(prior)),
+                               anchor_weight * (p[:n_center] - anchor)])
+
+    def jacobian(p):
+        _, jac = _box_projection(p, R, t, f, c, floor_height, with_jacobian=True)
+        return np.concatenate([(jac / diag[:, None, None])[edge_valid], prior_jac])
+
+    lo_size, hi_size = np.log(0.05), np.log(size_range[1] * 1.2)
+    lower = np.concatenate([np.full(n_center, -np.inf), np.full(3, lo_size), [-np.inf]])
+    upper = np.concatenate([np.full(n_center, np.inf), np.full(3, hi_size), [np.inf]])
+    clip = (np.log(0.06), np.log(size_range[1] * 1.15))
+    if init is not None:
+        starts = [np.concatenate([init.center[:n_center], np.clip(np.log(init.size), *clip), [init.yaw]])]
+    else:
+        starts = [np.concatenate([init_center[:n_center], np.clip(np.log(prior), *clip), [yaw]])
+                  for yaw in (0.0, np.pi / 4)]
+    best = None
+    for p0 in starts:
+        sol = least_squares(residuals, p0, jac=jacobian, bounds=(lower, upper), loss='soft_l1', f_scale=0.05,
+                            max_nfev=50, x_scale='jac')
+        if best is None or sol.cost < best.cost:
+            best = sol
+    size = np.exp(best.x[n_center:n_center + 3])
+    center = np.array([best.x[0], best.x[1], floor_height + size[2] / 2 if on_floor else best.x[2]])
+    size, yaw = canonical_yaw(size, float(best.x[-1]))
+    return Box3D(center, size, yaw)

@@ -1,0 +1,105 @@
+"""Association parameters (`AssociationConfig`, documented by `CONFIG_DOC`; the node's ROS parameters are
+generated from both) and the row type of /frodo/associations (`ASSOCIATION_DTYPE`)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+ASSOCIATION_DTYPE = np.dtype([('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('label', '<u2'), ('object_id', '<i4'),
+                              ('kept', 'u1'), ('bbox', '<f4', (4,))])
+"""Row of /frodo/associations (docs/ARCHITECTURE.md): object centre (world; NaN when not associated), the
+detection's instance label, object id (-1: not associated), kept (passed pruning), box (x0, y0, x1, y1)."""
+
+
+@dataclass(frozen=True)
+class AssociationConfig:
+    """Association parameters; `CONFIG_DOC` describes each (the node's ROS parameters are generated from both)."""
+
+    cluster_penalty: float = 0.4
+    merge_distance: float = 0.25
+    full_pass_every: int = 20
+    max_em_iterations: int = 10
+    reassign_ratio: float = 0.5
+    depth_margin: float = 0.3
+    min_depth: float = 0.3
+    max_depth: float = 20.0
+    center_prior_weight: float = 1e-3
+    max_center_segments: int = 64
+    min_track_views: int = 3
+    min_hit_ratio: float = 0.6
+    confirm_window: int = 10
+    drop_hit_ratio: float = 0.4
+    truncated_opens_clusters: bool = False
+    truncated_min_views: int = 4
+    truncated_merge_distance: float = 0.4
+    truncated_explained_iou: float = 0.5
+    objects_on_floor: bool = True
+    floor_height: float = 0.0
+    size_prior_weight: float = 0.05
+    center_anchor_weight: float = 1.0
+    box_refit_growth: float = 1.5
+    box_max_views: int = 24
+    max_box_fits_per_frame: int = 1
+    prune: bool = True
+    min_box_width: float = 24.0
+    min_box_height: float = 24.0
+    occlusion_iou: float = 0.6
+    overlap_iou: float = 0.4
+    border_margin: float = 2.0
+
+
+CONFIG_DOC: dict[str, str] = {
+    'cluster_penalty': 'DP-means cluster penalty lambda (m): a segment farther than this from every centre of its '
+                       'class opens a new cluster (paper: 0.4).',
+    'merge_distance': 'Clusters of one class whose centres come closer than this (m) are merged; the older id survives.',
+    'full_pass_every': 'Frames between full DP-means EM passes over all segments (0: never).',
+    'max_em_iterations': 'Maximum EM iterations of a full pass.',
+    'reassign_ratio': 'Full-pass hysteresis: a detection moves to another cluster only if that centre is closer '
+                      'than this times the distance to its own (1: plain DP-means re-assignment).',
+    'depth_margin': 'Relative widening of the depth interval [S_min/a, S_max/a] of a detection segment.',
+    'min_depth': 'Segments start no closer than this (m, optical depth).',
+    'max_depth': 'Segments end no farther than this (m, optical depth).',
+    'center_prior_weight': 'Weight (per segment) pulling a cluster centre towards the mean segment midpoint; '
+                           'regularises near-parallel segments.',
+    'max_center_segments': 'Segments per cluster used to re-estimate its centre, evenly spread over its detections.',
+    'min_track_views': 'Reliable detections (not truncated, at least min_box_width x min_box_height, scaled) a '
+                       'cluster needs before it is published as an object.',
+    'min_hit_ratio': 'A cluster is published once it was detected in at least this fraction of the frames whose '
+                     'image contains its centre (since its first detection).',
+    'confirm_window': 'Frames with the cluster centre in view (since its first detection) before the hit ratio '
+                      'may publish it.',
+    'drop_hit_ratio': 'A published cluster whose hit ratio falls below this (checked at full passes) is withdrawn.',
+    'truncated_opens_clusters': 'Let detections touching the image border open new clusters and count towards '
+                                'publishing one (their box centre and size are biased).',
+    'truncated_min_views': 'Deferred opening (own extension, not in the paper): at full passes, unassigned '
+                           'truncated detections farther than lambda from every centre of their class are clustered '
+                           'among themselves (DP-means, lambda); a group with detections from at least this many '
+                           'frames opens a cluster (0: off), which its truncated detections may publish.',
+    'truncated_merge_distance': 'A cluster opened by the deferred rule merges with a cluster of its class closer than '
+                                'this (m) (its centre is biased by the truncation); groups this close to an existing '
+                                'cluster open none.',
+    'truncated_explained_iou': 'A detection whose box has at least this IoU with the projected (clipped) 3D box of '
+                               'another published object of its class is explained by it (own extension): explained '
+                               'truncated detections are not pooled for deferred opening, and at full passes a cluster '
+                               'whose detections are mostly explained by one object is merged into it (> 1: off).',
+    'objects_on_floor': 'Boxes stand on the plane z = floor_height (gravity-aligned world).',
+    'floor_height': 'Height of the support plane (m) when objects_on_floor.',
+    'size_prior_weight': 'Weight of the class size prior (log-size residual) in the box fit.',
+    'center_anchor_weight': 'Weight (per metre) pulling the box centre towards the cluster centre in the box fit '
+                            '(resolves the depth ambiguity of few or similar views).',
+    'box_refit_growth': 'An object box is refitted when its detection count grew by this factor since the last fit.',
+    'box_max_views': 'Detections used per box fit (evenly spread over the object\'s detections).',
+    'max_box_fits_per_frame': 'Box fits per processed frame at most (bounds the per-frame latency).',
+    'prune': 'Apply detection pruning (size, occlusion, overlap); off: every associated detection is kept.',
+    'min_box_width': 'Pruning (1): detections narrower than this are rejected and open no clusters (pixels at '
+                     '640x480, scaled by sqrt(W*H/(640*480)) at other resolutions).',
+    'min_box_height': 'Pruning (1): detections lower than this are rejected and open no clusters (pixels at '
+                      '640x480, scaled by sqrt(W*H/(640*480)) at other resolutions).',
+    'occlusion_iou': 'Pruning (2): detections whose IoU with their object\'s projected 3D box is below this are '
+                     'rejected (occluded or truncated).',
+    'overlap_iou': 'Pruning (3): detections whose IoU with another object\'s projected 3D box is above this are '
+                   'rejected.',
+    'border_margin': 'A box edge within this many pixels of the image border is truncated (not used in box fits).',
+}
+assert set(CONFIG_DOC) == {f.name for f in fields(AssociationConfig)}

@@ -1,0 +1,648 @@
+"""Incremental association (paper Sec. 4.1): `Associator` turns per-frame detections into objects with stable
+ids, confirmation ("publishing"), 3D boxes and pruning flags (numpy/scipy, no ROS).
+
+DP-means over ray segments (`frodo_association.segments`) runs incrementally: each frame's segments are
+matched to the centres of their class by a Hungarian assignment gated by lambda, because a frame sees an object at most
+once, and the centres of the touched clusters are re-estimated; every `full_pass_every` frames a full EM
+pass re-assigns every segment (with hysteresis, `reassign_ratio`, against drift between neighbouring
+clusters along long segments) until the assignment is stable.
+Ids are never reused and never renumbered: a cluster keeps its id until it is merged away (two centres of
+one class closer than `merge_distance`; the older id survives) or emptied by a full pass.
+Same-frame duplicates and splits: when a merge or a full pass puts two detections of one frame on one
+object, the one nearer the centre keeps it and the other is ignored (object id -1); a segment within
+lambda of a centre that a closer detection of its frame already holds is ignored rather than opening a
+cluster (a split mask or a duplicate detection). Detections touching the image border or smaller than
+the pruning size are "unreliable": they join clusters but open none and do not count towards publishing.
+Always-truncated objects (the project's own extension; the paper does not address them): truncated
+detections that stay unassigned and lie farther than lambda from every centre of their class are pooled;
+at each full pass the pool of a class is clustered among itself with the same segment DP-means (leader
+opening at lambda, then least-squares centres and nearest-centre re-assignment), and a group with
+detections from at least `truncated_min_views` distinct frames, whose centre is at least
+`truncated_merge_distance` from every cluster of its class, opens a cluster (one detection per frame, the
+nearest). Pooled detections explained by a published object's 3D box (IoU of the detection box with the
+object's projected box, clipped to the image, at least `truncated_explained_iou`) are left out: the visible
+end of a long table is far from the table's centre. Such a cluster counts its truncated detections towards
+publishing (until it has min_track_views reliable ones) and merges with a cluster of its class within
+`truncated_merge_distance` (rather than merge_distance). At every full pass, a cluster most of whose
+detections are explained by another published object's box is merged into it (`merge_explained`), so an
+object first seen truncated and later whole is not duplicated by the biased centres of its truncated views
+(this also merges the two halves of a long table seen from its ends, whose centres stay apart).
+Publishing ("confirmed"): a cluster is published once it has `min_track_views` reliable detections, has
+been in view (its centre projects into the image) for `confirm_window` frames since its first detection,
+and was detected in at least `min_hit_ratio` of them; a published cluster whose hit ratio drops below
+`drop_hit_ratio` (checked at full passes) is withdrawn. This removes the short-lived clusters opened by
+occluded detections, whose box centres are off. Unpublished clusters' detections carry object id -1.
+
+Pixel sizes (min_box_width, min_box_height) are given for a 640x480 image and scaled by
+s = sqrt(W * H / (640 * 480)) for a W x H image (`frodo_detection.core.resolution_scale`); border_margin
+is in plain pixels.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from frodo_association.boxes import Box3D, box_iou, clip_boxes, fit_box, project_boxes
+from frodo_association.config import ASSOCIATION_DTYPE, AssociationConfig
+from frodo_association.pruning import prune_detections
+from frodo_association.segments import (box_segments, clip_segments_to_heights, gated_assignment, lsq_center,
+                                        lsq_centers, point_segment_distance)
+from frodo_common.categories import category_by_id
+from frodo_common.geometry import invert_transform
+from frodo_detection.core import instance_boxes, resolution_scale
+
+
+@dataclass
+class ObjectTrack:
+    """One cluster: id, class, centre (3,), published ("confirmed") or not, 3D box (None until fitted), its
+    detection count at the last box fit, and whether the deferred truncated rule opened it (until it merges
+    with another cluster or gains min_track_views reliable detections)."""
+
+    object_id: int
+    coco_id: int
+    center: np.ndarray
+    confirmed: bool = False
+    box: Box3D | None = None
+    fitted_views: int = 0
+    from_truncated: bool = False
+
+
+@dataclass
+class AssociationUpdate:
+    """What one `add_frame` or `refine_boxes` call changed.
+
+    stamp / table: the new frame and its rows (ASSOCIATION_DTYPE) (`add_frame` only; None otherwise);
+    republish: stamps of earlier frames whose rows (object ids or kept flags) changed, oldest first;
+    removed: {object id no longer published: id it was merged into, or -1};
+    tracks_changed: an object's box or existence changed (re-send the tracks); fitted: ids whose box was fitted.
+    """
+
+    stamp: int | None = None
+    table: np.ndarray | None = None
+    republish: list[int] = field(default_factory=list)
+    removed: dict[int, int] = field(default_factory=dict)
+    tracks_changed: bool = False
+    fitted: list[int] = field(default_factory=list)
+
+
+class _Table:
+    """Named columns (numpy arrays sharing the first axis) with amortised O(1) append."""
+
+    def __init__(self, **columns: tuple[tuple[int, ...], type, object]):
+        self.n = 0
+        self._fill = {name: fill for name, (_, _, fill) in columns.items()}
+        self._cols = {name: np.full((16,) + shape, fill, dtype) for name, (shape, dtype, fill) in columns.items()}
+
+    def append(self, **values) -> slice:
+        """Append k rows (every column given, first axis k); returns their slice."""
+        k = len(next(iter(values.values())))
+        cap = len(next(iter(self._cols.values())))
+        if self.n + k > cap:
+            for name, arr in self._cols.items():
+                grown = np.full((max(2 * cap, self.n + k),) + arr.shape[1:], self._fill[name], arr.dtype)
+                grown[:self.n] = arr[:self.n]
+                self._cols[name] = grown
+        for name, arr in values.items():
+            self._cols[name][self.n:self.n + k] = arr
+        self.n += k
+        return slice(self.n - k, self.n)
+
+    def __getattr__(self, name: str) -> np.ndarray:
+        cols = self.__dict__.get('_cols')
+        if cols is None or name not in cols:
+            raise AttributeError(name)
+        return cols[name][:self.n]
+
+    def __len__(self) -> int:
+        return self.n
+
+
+class Associator:
+    """Incremental DP-means association of per-frame detections into objects with 3D boxes and pruning.
+
+    `add_frame` per frame (fast: clustering, merges, pruning with the current boxes); `refine_boxes`
+    after it (box fits, bounded per call). Detections are rows of `self.rows` (segment, box, label, class,
+    frame, cluster `assign`, `kept`), frames rows of `self.frames` (stamp, K, poses, size, row range).
+    """
+
+    def __init__(self, cfg: AssociationConfig | None = None):
+        self.cfg = cfg or AssociationConfig()
+        self.rows = _Table(segment=((2, 3), np.float64, 0.0), box=((4,), np.float64, 0.0),
+                           edge_valid=((4,), bool, False), label=((), np.int64, 0), coco=((), np.int64, 0),
+                           frame=((), np.int64, 0), assign=((), np.int64, -1), kept=((), bool, False),
+                           valid=((), bool, False), reliable=((), bool, False), truncated=((), bool, False))
+        self.frames = _Table(stamp=((), np.int64, 0), K=((3, 3), np.float64, 0.0),
+                             T_world_camera=((4, 4), np.float64, 0.0), T_camera_world=((4, 4), np.float64, 0.0),
+                             size=((2,), np.float64, 0.0), start=((), np.int64, 0), stop=((), np.int64, 0))
+        self.frame_index: dict[int, int] = {}
+        self.tracks: dict[int, ObjectTrack] = {}
+        self.next_id = 0
+        self.published: dict[int, tuple[np.ndarray, np.ndarray]] = {}   # stamp -> (object ids, kept) sent
+        self.merges = 0
+
+    # ------------------------------------------------------------ public API
+    def add_frame(self, stamp: int, K: np.ndarray, T_world_camera: np.ndarray, size: tuple[int, int],
+                  labels: np.ndarray, boxes: np.ndarray) -> AssociationUpdate:
+        """Associate one frame's detections (clustering, merges, confirmation, pruning with the current boxes).
+
+        stamp: frame stamp (ns); K: (3, 3); T_world_camera: (4, 4); size: image (width, height);
+        labels: (N,) contract instance labels; boxes: (N, 4) detection boxes. A stamp seen before is
+        ignored (its current rows are returned). Box fits are left to `refine_boxes`.
+        """
+        if stamp in self.frame_index:
+            return AssociationUpdate(stamp, self.frame_table(stamp))
+        cfg = self.cfg
+        labels = np.asarray(labels, dtype=np.int64).reshape(-1)
+        boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+        K = np.asarray(K, dtype=np.float64)
+        T_world_camera = np.asarray(T_world_camera, dtype=np.float64)
+        coco = labels >> 8
+        cats = [category_by_id(c) for c in coco]
+        valid = np.array([c is not None for c in cats], dtype=bool) & np.all(np.isfinite(boxes), axis=1) \
+            & (boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1])
+        size_ranges = np.array([c.size_range if c is not None else (1.0, 1.0) for c in cats]).reshape(-1, 2)
+        segments = box_segments(boxes, K, T_world_camera, size_ranges, cfg.depth_margin, cfg.min_depth,
+                                cfg.max_depth)
+        if cfg.objects_on_floor:     # the centre of an object standing on the floor is at half its height
+            segments = clip_segments_to_heights(segments, cfg.floor_height + 0.25 * size_ranges[:, 0],
+                                                cfg.floor_height + 0.5 * size_ranges[:, 1] * (1 + cfg.depth_margin))
+        w, h = size
+        m = cfg.border_margin
+        scale = resolution_scale(w, h)
+        edge_valid = np.stack([boxes[:, 0] > m - 0.5, boxes[:, 1] > m - 0.5,
+                               boxes[:, 2] < w - 0.5 - m, boxes[:, 3] < h - 0.5 - m], axis=1)
+        big_enough = (boxes[:, 2] - boxes[:, 0] >= cfg.min_box_width * scale) \
+            & (boxes[:, 3] - boxes[:, 1] >= cfg.min_box_height * scale)
+        truncated = ~edge_valid.all(axis=1)
+        fi = len(self.frames)
+        rows = self.rows.append(segment=segments, box=boxes, edge_valid=edge_valid, label=labels, coco=coco,
+                                frame=np.full(len(labels), fi), assign=np.full(len(labels), -1),
+                                kept=np.zeros(len(labels), bool), valid=valid,
+                                reliable=valid & big_enough & (cfg.truncated_opens_clusters | ~truncated),
+                                truncated=valid & big_enough & truncated)
+        self.frames.append(stamp=[stamp], K=K[None], T_world_camera=T_world_camera[None],
+                           T_camera_world=invert_transform(T_world_camera)[None], size=[(w, h)],
+                           start=[rows.start], stop=[rows.stop])
+        self.frame_index[stamp] = fi
+        self._update_centers(self._assign_frame(rows))
+        dirty: set[int] = set()
+        removed: dict[int, int] = {}
+        full = cfg.full_pass_every > 0 and len(self.frames) % cfg.full_pass_every == 0
+        if full:
+            changed, gone = self.full_pass()
+            dirty |= changed
+            removed.update(gone)
+            gone, merge_frames = self.merge_explained()
+            removed.update(gone)
+            dirty |= merge_frames
+        merged, merge_frames = self.merge_close()
+        removed.update(merged)
+        confirm_frames, dropped = self._update_confirmation(recheck=full)
+        removed.update(dropped)
+        dirty |= merge_frames | confirm_frames
+        dirty.discard(fi)
+        self._prune_frames(sorted(dirty | {fi}))
+        table = self.frame_table(stamp)
+        self.published[stamp] = (table['object_id'].copy(), table['kept'].astype(bool))
+        removed = {k: v for k, v in removed.items() if not (k in self.tracks and self.tracks[k].confirmed)}
+        return AssociationUpdate(stamp, table, self._changed_stamps(dirty), removed, bool(removed))
+
+    def refine_boxes(self, max_fits: int | None = None) -> AssociationUpdate:
+        """Fit the boxes of the objects that grew most since their last fit (at most `max_fits`, default
+        max_box_fits_per_frame; objects without a box first) and re-prune their frames."""
+        cfg = self.cfg
+        limit = cfg.max_box_fits_per_frame if max_fits is None else max_fits
+        counts = np.bincount(self.rows.assign[self.rows.assign >= 0], minlength=self.next_id)
+        due = []
+        for t in self.confirmed_tracks():
+            n = int(counts[t.object_id])
+            if t.box is None or n >= max(t.fitted_views + 1, np.ceil(t.fitted_views * cfg.box_refit_growth)):
+                due.append((t.box is not None, -n / max(t.fitted_views, 1), t.object_id, n))
+        fitted = []
+        for _, _, oid, n in sorted(due)[:limit]:
+            self.fit_object_box(oid)
+            self.tracks[oid].fitted_views = n
+            fitted.append(oid)
+        if not fitted:
+            return AssociationUpdate()
+        dirty = set(np.unique(self.rows.frame[np.isin(self.rows.assign, fitted)]).tolist())
+        self._prune_frames(sorted(dirty))
+        return AssociationUpdate(republish=self._changed_stamps(dirty), tracks_changed=True, fitted=fitted)
+
+    def frame_table(self, stamp: int) -> np.ndarray:
+        """Current rows (ASSOCIATION_DTYPE) of a processed frame."""
+        sl = self._frame_rows(self.frame_index[stamp])
+        ids, kept = self._row_ids(sl)
+        out = np.zeros(len(ids), dtype=ASSOCIATION_DTYPE)
+        out['label'] = self.rows.label[sl]
+        out['bbox'] = self.rows.box[sl]
+        centers = np.array([self.tracks[a].center if a >= 0 else (np.nan,) * 3 for a in ids]).reshape(-1, 3)
+        out['x'], out['y'], out['z'] = centers.T
+        out['object_id'] = ids
+        out['kept'] = kept
+        return out
+
+    def confirmed_tracks(self) -> list[ObjectTrack]:
+        """Published objects (confirmed clusters), by id."""
+        return [t for _, t in sorted(self.tracks.items()) if t.confirmed]
+
+    def members(self, object_id: int) -> np.ndarray:
+        """Row indices of a cluster's detections."""
+        return np.nonzero(self.rows.assign == object_id)[0]
+
+    # ------------------------------------------------------------ bookkeeping
+    def _frame_rows(self, fi: int) -> slice:
+        return slice(int(self.frames.start[fi]), int(self.frames.stop[fi]))
+
+    def _row_ids(self, rows: slice | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(published object ids (-1 unless assigned to a confirmed cluster), kept flags) of detection rows."""
+        assign = self.rows.assign[rows]
+        confirmed = np.zeros(self.next_id + 1, dtype=bool)
+        confirmed[[t.object_id for t in self.tracks.values() if t.confirmed]] = True
+        ids = np.where(confirmed[assign], assign, -1)
+        return ids, self.rows.kept[rows] & (ids >= 0)
+
+    def _changed_stamps(self, frame_indices: set[int]) -> list[int]:
+        """Stamps of the given frames whose rows differ from what was last published (and mark them sent)."""
+        out = []
+        for fi in sorted(frame_indices):
+            stamp = int(self.frames.stamp[fi])
+            ids, kept = self._row_ids(self._frame_rows(fi))
+            old = self.published.get(stamp)
+            if old is None or not (np.array_equal(old[0], ids) and np.array_equal(old[1], kept)):
+                self.published[stamp] = (ids, kept)
+                out.append(stamp)
+        return out
+
+    def _frames_of(self, object_ids) -> set[int]:
+        """Frame indices with a detection of any of the given clusters."""
+        return set(np.unique(self.rows.frame[np.isin(self.rows.assign, list(object_ids))]).tolist())
+
+    # ------------------------------------------------------------ clustering
+    def _new_track(self, row: int) -> int:
+        """Open a cluster at the midpoint of detection `row`'s segment."""
+        oid = self.next_id
+        self.next_id += 1
+        seg = self.rows.segment[row]
+        self.tracks[oid] = ObjectTrack(oid, int(self.rows.coco[row]), (seg[0] + seg[1]) / 2)
+        self.rows.assign[row] = oid
+        return oid
+
+    def _class_centers(self, coco: int) -> tuple[np.ndarray, np.ndarray]:
+        ids = np.array([t.object_id for t in self.tracks.values() if t.coco_id == coco], dtype=np.int64)
+        centers = np.array([self.tracks[i].center for i in ids]).reshape(-1, 3)
+        return ids, centers
+
+    def _assign_frame(self, rows: slice) -> set[int]:
+        """Assign one frame's detections (DP-means step with same-frame exclusivity); returns touched ids."""
+        touched: set[int] = set()
+        idx = np.arange(rows.start, rows.stop)[self.rows.valid[rows]]
+        for coco in np.unique(self.rows.coco[idx]):
+            sel = idx[self.rows.coco[idx] == coco]
+            ids, centers = self._class_centers(coco)
+            dist = point_segment_distance(centers, self.rows.segment[sel])
+            match = gated_assignment(dist, self.cfg.cluster_penalty)
+            self.rows.assign[sel[match >= 0]] = ids[match[match >= 0]]
+            touched.update(ids[match[match >= 0]].tolist())
+            far = (dist.min(axis=1) if dist.shape[1] else np.full(len(sel), np.inf)) >= self.cfg.cluster_penalty
+            for i in sel[(match < 0) & far & self.rows.reliable[sel]]:
+                self._new_track(int(i))
+        return touched
+
+    def _update_centers(self, ids) -> None:
+        """Re-estimate the centres of the given clusters from their member segments (one batched solve)."""
+        ids = np.asarray(sorted(ids), dtype=np.int64)
+        if len(ids) == 0:
+            return
+        slot = np.full(self.next_id + 1, -1, np.int64)
+        slot[ids] = np.arange(len(ids))
+        rows = np.nonzero(slot[self.rows.assign] >= 0)[0]
+        group = slot[self.rows.assign[rows]]
+        # At most max_center_segments per cluster, evenly spread over its detections (bounded cost).
+        order = np.argsort(group, kind='stable')
+        rows, group = rows[order], group[order]
+        counts = np.bincount(group, minlength=len(ids))
+        rank = np.arange(len(rows)) - (np.cumsum(counts) - counts)[group]
+        cap, n = self.cfg.max_center_segments, counts[group]
+        keep = (n <= cap) | ((rank * cap) // np.maximum(n, 1) != ((rank - 1) * cap) // np.maximum(n, 1))
+        centers = lsq_centers(self.rows.segment[rows[keep]], group[keep], len(ids), self.cfg.center_prior_weight)
+        for oid, c in zip(ids, centers):
+            if np.all(np.isfinite(c)):
+                self.tracks[int(oid)].center = c
+
+    def _explaining_objects(self, rows: np.ndarray) -> np.ndarray:
+        """Per detection row, the published object of its class (with a box, not the row's own cluster) whose
+        projected 3D box, clipped to the image, has the highest IoU with the detection box if that is at least
+        truncated_explained_iou; else -1. (R,) ids."""
+        out = np.full(len(rows), -1, np.int64)
+        boxed = [t for t in self.confirmed_tracks() if t.box is not None]
+        if not boxed or len(rows) == 0:
+            return out
+        fis, at = np.unique(self.rows.frame[rows], return_inverse=True)      # project once per frame
+        corners = np.array([t.box.corners() for t in boxed])
+        proj, valid = project_boxes(self.frames.K[fis], self.frames.T_camera_world[fis], corners)
+        proj, valid = clip_boxes(proj, self.frames.size[fis])[at], valid[at]
+        iou = box_iou(self.rows.box[rows][:, None, :], proj)
+        ids = np.array([t.object_id for t in boxed])
+        classes = np.array([t.coco_id for t in boxed])
+        ok = valid & (classes[None, :] == self.rows.coco[rows][:, None]) & (ids[None, :] != self.rows.assign[rows][:, None])
+        iou = np.where(ok, iou, 0.0)
+        best = iou.argmax(axis=1)
+        hit = iou[np.arange(len(rows)), best] >= self.cfg.truncated_explained_iou
+        out[hit] = ids[best[hit]]
+        return out
+
+    def _open_truncated_clusters(self) -> list[int]:
+        """Deferred opening for always-truncated objects (the project's own extension; the paper does not
+        address truncation here): DP-means over the pooled truncated detections (unassigned, beyond lambda
+        of every centre of their class), per class. Groups are opened leader-style (the first pooled segment
+        farther than lambda from every group centre opens a group at its midpoint and takes the pooled
+        segments within lambda), then refined by least-squares centres and nearest-centre re-assignment within
+        lambda. A group with detections of at least truncated_min_views frames, whose centre is at least
+        truncated_merge_distance from every cluster of its class, opens a cluster flagged `from_truncated`
+        with its nearest detection of each frame. Returns the opened ids."""
+        cfg = self.cfg
+        if cfg.truncated_min_views <= 0:
+            return []
+        pool = np.nonzero(self.rows.truncated & (self.rows.assign < 0))[0]
+        pool = pool[self._explaining_objects(pool) < 0]
+        opened: list[int] = []
+        for coco in np.unique(self.rows.coco[pool]):
+            sel = pool[self.rows.coco[pool] == coco]
+            ids, centers = self._class_centers(coco)
+            if len(ids):
+                sel = sel[point_segment_distance(centers, self.rows.segment[sel]).min(axis=1) >= cfg.cluster_penalty]
+            if len(np.unique(self.rows.frame[sel])) < cfg.truncated_min_views:
+                continue
+            segs = self.rows.segment[sel]
+            group = np.full(len(sel), -1, np.int64)
+            leaders: list[np.ndarray] = []
+            while np.any(group < 0):                          # leader opening (DP-means' first sweep)
+                i = int(np.argmax(group < 0))
+                leaders.append((segs[i, 0] + segs[i, 1]) / 2)
+                near = (group < 0) & (point_segment_distance(leaders[-1][None], segs)[:, 0] < cfg.cluster_penalty)
+                near[i] = True
+                group[near] = len(leaders) - 1
+            g_centers = np.array(leaders)
+            for _ in range(cfg.max_em_iterations):           # EM among the pooled segments
+                ok = group >= 0
+                g_centers = lsq_centers(segs[ok], group[ok], len(g_centers), cfg.center_prior_weight)
+                dist = point_segment_distance(np.nan_to_num(g_centers, nan=1e9), segs)
+                new = np.where(dist.min(axis=1) < cfg.cluster_penalty, dist.argmin(axis=1), -1)
+                if np.array_equal(new, group):
+                    break
+                group = new
+            for g in range(len(g_centers)):
+                members = np.nonzero(group == g)[0]
+                frames = self.rows.frame[sel[members]]
+                if len(np.unique(frames)) < cfg.truncated_min_views:
+                    continue
+                # One detection per frame: the nearest to the group centre.
+                d = point_segment_distance(g_centers[g][None], segs[members])[:, 0]
+                order = np.lexsort((d, frames))
+                first = np.ones(len(order), bool)
+                first[1:] = frames[order][1:] != frames[order][:-1]
+                members = members[order[first]]
+                center = lsq_center(segs[members], cfg.center_prior_weight)
+                ids, centers = self._class_centers(coco)
+                if len(ids) and np.linalg.norm(centers - center, axis=1).min() < cfg.truncated_merge_distance:
+                    continue
+                oid = self._new_track(int(sel[members[0]]))
+                self.rows.assign[sel[members]] = oid
+                self.tracks[oid].center = center
+                self.tracks[oid].from_truncated = True
+                opened.append(oid)
+        return opened
+
+    def full_pass(self) -> tuple[set[int], dict[int, int]]:
+        """EM over all detections until the assignment is stable (at most max_em_iterations): nearest centre
+        within lambda with same-frame exclusivity, new clusters for segments beyond lambda of every centre,
+        centres re-estimated; once stable, the deferred rule for truncated detections
+        (`_open_truncated_clusters`) may open clusters and EM goes on.
+        Returns (frames whose assignment changed, {emptied cluster id: -1})."""
+        cfg = self.cfg
+        valid = np.nonzero(self.rows.valid)[0]
+        before = self.rows.assign.copy()
+        removed: dict[int, int] = {}
+        pooled = False
+        for _ in range(cfg.max_em_iterations):
+            ids = np.array(sorted(self.tracks), dtype=np.int64)
+            if len(ids) == 0:
+                break
+            centers = np.array([self.tracks[i].center for i in ids])
+            classes = np.array([self.tracks[i].coco_id for i in ids])
+            dist = point_segment_distance(centers, self.rows.segment[valid])
+            dist[self.rows.coco[valid][:, None] != classes[None, :]] = np.inf
+            # Hysteresis: a detection leaves its cluster only for a centre reassign_ratio times closer.
+            cost = np.where(dist < cfg.cluster_penalty, dist, np.inf)
+            slot = np.full(self.next_id + 1, -1, np.int64)
+            slot[ids] = np.arange(len(ids))
+            cur = slot[self.rows.assign[valid]]
+            has = np.nonzero(cur >= 0)[0]
+            cost[has, cur[has]] *= cfg.reassign_ratio
+            best = np.argmin(cost, axis=1)
+            ok = np.isfinite(cost[np.arange(len(valid)), best])
+            assign = np.where(ok, best, -1)
+            frames = self.rows.frame[valid]
+            key = frames * (len(ids) + 1) + np.where(ok, best, len(ids))
+            _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+            for f in np.unique(frames[ok & (counts[inv] > 1)]):       # same-frame clashes: Hungarian
+                rows_f = np.nonzero(frames == f)[0]
+                assign[rows_f] = gated_assignment(cost[rows_f], cfg.cluster_penalty)
+            new_assign = np.where(assign >= 0, ids[np.maximum(assign, 0)], -1)
+            changed = not np.array_equal(new_assign, self.rows.assign[valid])
+            self.rows.assign[valid] = new_assign
+            opened: list[int] = []
+            orphans = valid[(dist.min(axis=1) >= cfg.cluster_penalty) & self.rows.reliable[valid]]
+            for i in orphans:       # DP-means: open a cluster; orphans near it join on the next iteration
+                near = [o for o in opened if self.tracks[o].coco_id == self.rows.coco[i]]
+                if not near or point_segment_distance(np.array([self.tracks[o].center for o in near]),
+                                                      self.rows.segment[i][None]).min() >= cfg.cluster_penalty:
+                    opened.append(self._new_track(int(i)))
+                    changed = True
+            counts = np.bincount(self.rows.assign[self.rows.assign >= 0], minlength=self.next_id)
+            for oid in [o for o in self.tracks if counts[o] == 0]:
+                del self.tracks[oid]
+                removed[oid] = -1
+            self._update_centers(list(self.tracks))
+            if not changed:
+                if pooled or not self._open_truncated_clusters():
+                    pooled = True
+                    break
+                pooled = True
+        if not pooled:
+            self._open_truncated_clusters()
+        diff = np.nonzero(before != self.rows.assign)[0]
+        return set(np.unique(self.rows.frame[diff]).tolist()), removed
+
+    def merge_close(self) -> tuple[dict[int, int], set[int]]:
+        """Merge same-class clusters closer than merge_distance (truncated_merge_distance when one was opened by
+        the deferred truncated rule; the older id survives); of two detections of
+        one frame on the merged cluster the one nearer its centre stays, the other is ignored (-1)."""
+        removed: dict[int, int] = {}
+        dirty: set[int] = set()
+        while len(self.tracks) > 1:
+            ids = np.array(sorted(self.tracks), dtype=np.int64)
+            centers = np.array([self.tracks[i].center for i in ids])
+            classes = np.array([self.tracks[i].coco_id for i in ids])
+            trunc = np.array([self.tracks[i].from_truncated for i in ids])
+            d = np.linalg.norm(centers[:, None] - centers[None], axis=2)
+            d[classes[:, None] != classes[None, :]] = np.inf
+            d[np.tril_indices(len(ids))] = np.inf
+            # Relative to the pair's merge distance (larger when a cluster was opened by truncated detections).
+            limit = np.where(trunc[:, None] | trunc[None, :], self.cfg.truncated_merge_distance,
+                             self.cfg.merge_distance)
+            i, j = np.unravel_index(np.argmin(d / limit), d.shape)
+            if d[i, j] >= limit[i, j]:
+                break
+            removed, dirty = self._merge_pair(int(ids[i]), int(ids[j]), removed, dirty)   # ids[i] is the older
+        return removed, dirty
+
+    def _merge_pair(self, a: int, b: int, removed: dict[int, int], dirty: set[int]) -> tuple[dict[int, int], set[int]]:
+        """Merge clusters a and b (the older id survives): of two detections of one frame the one nearer the
+        merged centre stays, the other is ignored (-1). Returns the updated (removed, dirty frames)."""
+        keep, gone = min(a, b), max(a, b)
+        members = np.nonzero((self.rows.assign == keep) | (self.rows.assign == gone))[0]
+        center = lsq_center(self.rows.segment[members], self.cfg.center_prior_weight)
+        frames = self.rows.frame[members]
+        dist = point_segment_distance(center[None], self.rows.segment[members])[:, 0]
+        order = np.lexsort((dist, frames))
+        first = np.ones(len(order), bool)
+        first[1:] = frames[order][1:] != frames[order][:-1]
+        self.rows.assign[members] = keep
+        self.rows.assign[members[order[~first]]] = -1
+        survivor = self.tracks[keep]
+        survivor.confirmed = survivor.confirmed or self.tracks[gone].confirmed
+        survivor.from_truncated = survivor.from_truncated and self.tracks[gone].from_truncated
+        survivor.fitted_views = 0                      # refit with the merged detections
+        if survivor.box is None:
+            survivor.box = self.tracks[gone].box
+        del self.tracks[gone]
+        removed = {k: (keep if v == gone else v) for k, v in removed.items()}
+        removed[gone] = keep
+        self.merges += 1
+        self._update_centers([keep])
+        return removed, dirty | set(np.unique(frames).tolist())
+
+    def merge_explained(self) -> tuple[dict[int, int], set[int]]:
+        """Merge a cluster (with at least min_track_views detections) into a published object of its class when
+        more than half of its detections are explained by that object's 3D box (`_explaining_objects`: IoU with
+        the clipped projection at least truncated_explained_iou). Run at full passes; catches duplicates whose
+        centres are farther apart than the merge distances because the box-centre rays of partial views (the
+        visible end of a long table) are biased. Returns ({gone id: surviving id}, frames whose rows changed)."""
+        removed: dict[int, int] = {}
+        dirty: set[int] = set()
+        if self.cfg.truncated_explained_iou > 1.0 or len(self.tracks) < 2:
+            return removed, dirty
+        rows = np.nonzero(self.rows.assign >= 0)[0]
+        expl = self._explaining_objects(rows)                 # one batched projection for all clusters
+        n = np.bincount(self.rows.assign[rows], minlength=self.next_id)
+        pairs, counts = np.unique(np.stack([self.rows.assign[rows], expl])[:, expl >= 0], axis=1, return_counts=True)
+        touched: set[int] = set()
+        for (oid, by), c in zip(pairs.T.tolist(), counts.tolist()):
+            if c * 2 > n[oid] and n[oid] >= self.cfg.min_track_views and not {oid, by} & touched:
+                removed, dirty = self._merge_pair(oid, by, removed, dirty)
+                touched |= {oid, by}                           # the rest waits for the next full pass
+        return removed, dirty
+
+    def hit_ratio(self, object_id: int) -> tuple[float, int]:
+        """(frames with a detection / frames whose image contains the cluster centre, frames in view),
+        counted from the cluster's first detection."""
+        t = self.tracks[object_id]
+        hit_frames = self.rows.frame[self.members(object_id)]
+        first = int(hit_frames.min())
+        fr = slice(first, len(self.frames))
+        pc = np.einsum('fij,j->fi', self.frames.T_camera_world[fr][:, :3, :3], t.center) \
+            + self.frames.T_camera_world[fr][:, :3, 3]
+        z = pc[:, 2]
+        K = self.frames.K[fr]
+        zs = np.maximum(z, 1e-6)
+        u = K[:, 0, 0] * pc[:, 0] / zs + K[:, 0, 2]
+        v = K[:, 1, 1] * pc[:, 1] / zs + K[:, 1, 2]
+        size = self.frames.size[fr]
+        in_view = (z > self.cfg.min_depth) & (u >= 0) & (v >= 0) & (u < size[:, 0]) & (v < size[:, 1])
+        hit = np.zeros(len(in_view), dtype=bool)
+        hit[hit_frames - first] = True
+        n_view = int(np.count_nonzero(in_view | hit))
+        return float(np.count_nonzero(hit)) / max(n_view, 1), n_view
+
+    def _update_confirmation(self, recheck: bool) -> tuple[set[int], dict[int, int]]:
+        """Confirm clusters with at least min_track_views reliable detections (not truncated, not too small:
+        those that may open clusters; for clusters opened by the deferred truncated rule, truncated ones count), in view for at least confirm_window frames and a hit ratio of at least
+        min_hit_ratio; with `recheck`, withdraw confirmed clusters whose hit ratio fell below drop_hit_ratio
+        (over at least 2 * min_track_views frames in view). Returns (frames whose rows change, withdrawn ids)."""
+        cfg = self.cfg
+        counts = np.bincount(self.rows.assign[(self.rows.assign >= 0) & self.rows.reliable], minlength=self.next_id)
+        all_counts = np.bincount(self.rows.assign[(self.rows.assign >= 0) & (self.rows.reliable | self.rows.truncated)],
+                                 minlength=self.next_id)
+        changed: list[int] = []
+        withdrawn: dict[int, int] = {}
+        for t in self.tracks.values():
+            if t.from_truncated and counts[t.object_id] >= cfg.min_track_views:
+                t.from_truncated = False          # now seen whole often enough: an ordinary cluster
+            n = all_counts[t.object_id] if t.from_truncated else counts[t.object_id]
+            if not t.confirmed and n >= cfg.min_track_views:
+                ratio, n_view = self.hit_ratio(t.object_id)
+                if ratio >= cfg.min_hit_ratio and n_view >= cfg.confirm_window:
+                    t.confirmed = True
+                    changed.append(t.object_id)
+            elif t.confirmed and recheck:
+                ratio, n_view = self.hit_ratio(t.object_id)
+                if ratio < cfg.drop_hit_ratio and n_view >= 2 * cfg.min_track_views:
+                    t.confirmed = False
+                    changed.append(t.object_id)
+                    withdrawn[t.object_id] = -1
+        return (self._frames_of(changed) if changed else set()), withdrawn
+
+    # ------------------------------------------------------------ boxes and pruning
+    def fit_object_box(self, object_id: int) -> Box3D:
+        """Fit (or refit) an object's 3D box from its detections: the kept ones when pruning and they are at
+        least half of them (and min_track_views), else all of them."""
+        cfg = self.cfg
+        track = self.tracks[object_id]
+        members = self.members(object_id)
+        if cfg.prune and track.box is not None:
+            kept = members[self.rows.kept[members]]
+            if len(kept) >= max(cfg.min_track_views, len(members) / 2):
+                members = kept
+        if len(members) > cfg.box_max_views:
+            members = members[np.linspace(0, len(members) - 1, cfg.box_max_views).round().astype(int)]
+        frames = self.rows.frame[members]
+        edge_valid = self.rows.edge_valid[members]
+        if not edge_valid.any():
+            edge_valid = np.ones_like(edge_valid)
+        category = category_by_id(track.coco_id)
+        track.box = fit_box(self.frames.K[frames], self.frames.T_camera_world[frames], self.rows.box[members],
+                            edge_valid, category.size_range, track.center,
+                            cfg.floor_height if cfg.objects_on_floor else None, cfg.size_prior_weight,
+                            cfg.center_anchor_weight, track.box)
+        return track.box
+
+    def _prune_frames(self, frame_indices: list[int]) -> None:
+        """Recompute the kept flags of the detections of the given frames with the current boxes."""
+        if not frame_indices:
+            return
+        fis = np.asarray(frame_indices, dtype=np.int64)
+        starts, stops = self.frames.start[fis], self.frames.stop[fis]
+        rows = np.concatenate([np.arange(a, b) for a, b in zip(starts, stops)])
+        assign = self.rows.assign[rows]
+        if not self.cfg.prune:
+            self.rows.kept[rows] = assign >= 0
+            return
+        boxed = [t for t in self.confirmed_tracks() if t.box is not None]
+        corners = np.array([t.box.corners() for t in boxed]).reshape(-1, 8, 3)
+        proj, valid = project_boxes(self.frames.K[fis], self.frames.T_camera_world[fis], corners)
+        position = np.repeat(np.arange(len(fis)), stops - starts)
+        slot = np.full(self.next_id + 1, -1, np.int64)
+        slot[[t.object_id for t in boxed]] = np.arange(len(boxed))
+        index = np.where(assign >= 0, slot[assign], -1)
+        kept = prune_detections(self.rows.box[rows], index, proj[position], valid[position],
+                                self.frames.size[fis][position], self.cfg)
+        self.rows.kept[rows] = kept & (assign >= 0)
+
+
+def detections_from_instances(instances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(labels (N,), boxes (N, 4)) of the instances in a contract instance image (H, W) uint16."""
+    labels, boxes, _ = instance_boxes(instances)
+    return labels, boxes
