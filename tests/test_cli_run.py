@@ -81,3 +81,18 @@ def test_outputs_follow_marker_actions_and_prefer_optimiser_info(tmp_path):
     mesh = trimesh.load(tmp_path / 'meshes' / '2_dining_table.ply')
     assert np.allclose(sorted(mesh.vertices.tolist()), sorted(vertices.tolist()))
     assert object_records(None, None) == []
+
+
+def test_run_rejects_bad_bags_at_once_with_exit_2(tmp_path, capsys):
+    from frodo_bringup import cli
+    from frodo_common import topics
+    from frodo_common.bag import BagWriter
+    (tmp_path / 'garbage.mcap').write_text('not a bag\n' * 100)
+    assert cli.main(['run', str(tmp_path / 'garbage.mcap'), '--out', str(tmp_path / 'out')]) == 2
+    assert 'is not an MCAP file' in capsys.readouterr().err
+    with BagWriter(tmp_path / 'poses.mcap') as bag:
+        bag.write(topics.POSE, conv.make_pose_stamped(np.eye(4), 10, 'world'), 10)
+    assert cli.main(['run', str(tmp_path / 'poses.mcap'), '--out', str(tmp_path / 'out')]) == 2
+    err = capsys.readouterr().err
+    assert f'no message on the required input(s) {topics.IMAGE}, {topics.CAMERA_INFO}' in err
+    assert not (tmp_path / 'out' / 'logs').exists()  # no node was started

@@ -5,6 +5,7 @@ from __future__ import annotations
 import threading
 import time
 
+import numpy as np
 import pytest
 from rclpy.qos import DurabilityPolicy
 from rosgraph_msgs.msg import Clock
@@ -83,9 +84,11 @@ def test_truncated_bag_plays_what_is_readable(tmp_path, capsys):
     (['BAG', '--remap', '/a=/b'], "bad remap '/a=/b': expected FROM:=TO"),
     (['BAG', '--topics', '/nope'], 'topic(s) /nope not in'),
     (['BAG', '--rate', '-1'], 'rate must be >= 0'),
+    (['garbage.mcap'], 'is not an MCAP file'),
 ])
 def test_bad_play_arguments_are_explained(tmp_path, capsys, args, message):
     write_contract_bag(tmp_path / 'a.mcap', frames=2)
+    (tmp_path / 'garbage.mcap').write_text('not a bag\n' * 100)
     args = [str(tmp_path / 'a.mcap') if a == 'BAG' else str(tmp_path / a) if a.endswith('.mcap') else a
             for a in args]
     assert cli.main(['play', *args]) == 2
@@ -120,3 +123,17 @@ def test_wait_for_subscribers_settles_until_matches_stop_changing(tmp_path, sess
     # The second subscription came during the settle time: it is matched before playback may start.
     assert player.played_topics([topics.IMAGE, topics.INSTANCES]) == [topics.IMAGE]
     assert player._publishers[topics.IMAGE].get_subscription_count() == 2
+
+
+def test_a_bag_without_required_inputs_plays_with_a_warning_naming_them(tmp_path, capsys):
+    write_contract_bag(tmp_path / 'a.mcap', frames=2)
+    assert cli.main(['play', str(tmp_path / 'a.mcap'), '--rate', '0', '--no-progress',
+                     '--topics', topics.POSE]) == 0
+    assert 'required input' not in capsys.readouterr().err  # --topics chose a subset on purpose
+    from frodo_common.bag import BagWriter
+    from frodo_common import conversions as conv
+    with BagWriter(tmp_path / 'poses.mcap') as bag:
+        bag.write(topics.POSE, conv.make_pose_stamped(np.eye(4), 10, 'world'), 10)
+    assert cli.main(['play', str(tmp_path / 'poses.mcap'), '--rate', '0', '--no-progress']) == 0
+    assert (f'no message on required input(s) {topics.IMAGE}, {topics.CAMERA_INFO}'
+            in capsys.readouterr().err)

@@ -43,6 +43,10 @@ def run(args: argparse.Namespace) -> int:
             return _fail(err)
         for problem in player.problems:
             print(f'frodo play: warning: {problem}', file=sys.stderr)
+        missing = player.missing_required()
+        if missing and args.topics is None:
+            print(f'frodo play: warning: the bag has no message on required input(s) {", ".join(missing)} '
+                  '(CONTRACT.md); the graph will produce nothing from it', file=sys.stderr)
         if args.wait_subscribers > 0:
             unmatched = player.wait_for_subscribers(args.wait_subscribers, stop=stop)
             if unmatched:

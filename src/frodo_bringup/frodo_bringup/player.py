@@ -131,6 +131,9 @@ class Player:
         self._publishers: dict[str, Publisher] = {}
         self._messages = self._select(topics, ground_truth, start_offset)
         self.problems += self.reader.problems
+        if not self.reader.topics():
+            raise PlayerError(f'{self.reader.path} has no readable messages'
+                              + (f' ({"; ".join(self.reader.problems)})' if self.reader.problems else ''))
         self._clock_pub = node.create_publisher(Clock, '/clock', 10) if clock else None
         self._create_publishers()
 
@@ -227,6 +230,10 @@ class Player:
             if (not unmatched and now - since >= settle) or now >= deadline or stop.is_set():
                 return unmatched
             stop.wait(0.05)
+
+    def missing_required(self) -> list[str]:
+        """Required contract inputs (REQUIRED_INPUTS) the bag has no readable message on."""
+        return self.reader.missing_topics(REQUIRED_INPUTS)
 
     def played_topics(self, candidates: Iterable[str]) -> list[str]:
         """The output names of those `candidates` (bag topic names) this player publishes."""

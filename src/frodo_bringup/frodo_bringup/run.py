@@ -26,7 +26,7 @@ from visualization_msgs.msg import MarkerArray
 from frodo_bringup.graph import NODES, OPTIMISER, VIEWER, GraphNode
 from frodo_bringup.launcher import Launcher, NodeExit
 from frodo_bringup.outputs import summary_table, write_outputs
-from frodo_bringup.player import PlayStats, Player
+from frodo_bringup.player import PlayStats, Player, PlayerError
 from frodo_bringup.session import RosSession
 from frodo_common import topics
 from frodo_common.conversions import cloud_to_table
@@ -135,7 +135,8 @@ def run_bag(bag: str | os.PathLike, out_dir: str | os.PathLike, params_files: Se
             env: dict[str, str] | None = None) -> RunResult:
     """Reconstruct one bag end to end; `timeout` bounds the wait for the graph after the bag has played.
 
-    Raises PlayerError (missing or unreadable bag) before any node is started.
+    Raises PlayerError (missing or unreadable bag, not an MCAP, required input topics absent) before any
+    node is started.
     """
     output = output or sys.stdout
     stop = stop or threading.Event()
@@ -150,6 +151,10 @@ def run_bag(bag: str | os.PathLike, out_dir: str | os.PathLike, params_files: Se
     result = RunResult(EXIT_OK)
     try:
         player = Player(session.node, bag, rate=rate, progress=progress, ground_truth=viewer == 'rrd')
+        missing = player.missing_required()
+        if missing:
+            raise PlayerError(f'{player.reader.path} has no message on the required input(s) {", ".join(missing)} '
+                              f'(CONTRACT.md); it has {", ".join(sorted(player.reader.topics()))}')
         collector = OutputCollector(session.node)
         launcher.start()
         result.play, result.done = _play_and_wait(player, collector, launcher, timeout, startup_timeout, stop)

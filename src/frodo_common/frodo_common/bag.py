@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import importlib
 import os
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO, Iterable, Iterator
@@ -162,56 +163,153 @@ class BagMessage:
         return deserialize_message(self.data, message_class(self.msgtype))
 
 
+# Contract per-frame input topics: one message per stamp, so a repeated stamp there is a duplicate.
+FRAME_TOPICS = ('/camera/color/image_raw', '/camera/color/camera_info', '/camera/pose', '/camera/instances',
+                '/camera/depth/image_raw')
+# The first bytes of every MCAP file, and of the other formats users most often pass by mistake.
+MCAP_MAGIC = b'\x89MCAP0\r\n'
+_OTHER_FORMATS = ((b'SQLite format 3\x00', 'a rosbag2 SQLite (.db3) bag; convert it to MCAP first, e.g. '
+                   '`ros2 bag convert` or `rosbags-convert --dst-storage mcap`'),
+                  (b'#ROSBAG V2.0', 'a ROS 1 bag; convert it to a ROS 2 MCAP first, e.g. `rosbags-convert`'))
+
+
+def _open_error(path: Path, head: bytes) -> str | None:
+    """Why `path` (whose first bytes are `head`) is not an MCAP file, or None when it starts like one."""
+    if head.startswith(MCAP_MAGIC):
+        return None
+    for magic, what in _OTHER_FORMATS:
+        if head.startswith(magic):
+            return f'{path} is {what}'
+    if not head:
+        return f'{path} is empty (expected a ROS 2 .mcap bag)'
+    return f'{path} is not an MCAP file (it starts with {head[:8]!r}, not {MCAP_MAGIC!r}); expected a ROS 2 .mcap bag'
+
+
+def resolve_bag_path(path: str | os.PathLike) -> Path:
+    """The .mcap file of `path`: the file itself, or the single .mcap in a rosbag2 bag directory."""
+    path = Path(path)
+    if path.is_dir():
+        files = sorted(path.glob('*.mcap'))
+        if len(files) != 1:
+            raise BagError(f'{path} is a directory with {len(files)} .mcap files; pass the .mcap file to play')
+        return files[0]
+    if not path.is_file():
+        raise BagError(f'bag not found: {path} (expected a ROS 2 .mcap file)')
+    return path
+
+
 class BagReader:
     """Tolerant reader of ROS 2 MCAP files.
 
-    Streams records from the start, so a truncated or partly corrupt file yields every message before
-    the damage; what was skipped is listed in `problems`. Messages are sorted by log time per call of
-    `messages()` (files written out of order still play in stamp order).
+    Opening checks at once that the file is an MCAP with the `ros2` profile (BagError otherwise: not an
+    MCAP, a .db3 or ROS 1 bag, another profile). Reading streams the records: a chunk whose CRC or
+    compression is damaged is skipped and reading goes on with the next one; damaged record framing or a
+    truncated file ends the scan, keeping every message before it. Messages on channels that are not
+    cdr/ros2msg are skipped. On the contract's per-frame topics (`FRAME_TOPICS`) a second message with the
+    same stamp is dropped as a duplicate. Messages are sorted by log time (files written out of order
+    still play in stamp order). Everything skipped, dropped or reordered is listed in `problems`.
     """
 
-    def __init__(self, path: str | os.PathLike):
-        self.path = Path(path)
-        if not self.path.is_file():
-            raise BagError(f'bag not found: {self.path} (expected a ROS 2 .mcap file)')
+    def __init__(self, path: str | os.PathLike, unique_stamp_topics: Iterable[str] = FRAME_TOPICS):
+        self.path = resolve_bag_path(path)
+        self.unique_stamp_topics = frozenset(unique_stamp_topics)
         self.problems: list[str] = []
         self.profile: str | None = None
         self.metadata: dict[str, dict[str, str]] = {}
         self._messages: list[BagMessage] | None = None
+        self._check_header()
+
+    def _check_header(self) -> None:
+        """Raise BagError unless the file starts with the MCAP magic and a Header record of profile ros2."""
+        from mcap.records import Header
+        with open(self.path, 'rb') as f:
+            error = _open_error(self.path, f.read(16))
+            if error is not None:
+                raise BagError(error)
+            f.seek(0)
+            try:
+                header = next(iter(StreamReader(f, skip_magic=False).records))
+            except Exception as err:  # noqa: BLE001 - any parse failure of the first record
+                raise BagError(f'{self.path}: damaged MCAP header ({type(err).__name__}: {err})') from None
+        if not isinstance(header, Header):
+            raise BagError(f'{self.path}: the MCAP file does not start with a Header record')
+        self.profile = header.profile
+        if header.profile not in ('ros2', ''):
+            raise BagError(f'{self.path}: MCAP profile is {header.profile!r}, not "ros2": not a ROS 2 bag '
+                           '(messages must be CDR with ros2msg schemas)')
+        if header.profile == '':
+            self.problems.append('MCAP profile is empty (expected "ros2"); reading cdr channels anyway')
 
     def _scan(self) -> list[BagMessage]:
+        from mcap.records import Chunk, Metadata
+        from mcap.stream_reader import breakup_chunk
         schemas: dict[int, Schema] = {}
         channels: dict[int, Channel] = {}
         out: list[BagMessage] = []
-        from mcap.records import Header, Metadata
+        skipped: Counter[str] = Counter()
+        damaged_chunks = 0
+
+        def take(record) -> None:
+            if isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Channel):
+                channels[record.id] = record
+            elif isinstance(record, Metadata):
+                self.metadata[record.name] = dict(record.metadata)
+            elif isinstance(record, Message):
+                channel = channels.get(record.channel_id)
+                schema = schemas.get(channel.schema_id) if channel is not None else None
+                if channel is None:
+                    skipped[f'channel {record.channel_id} (not defined)'] += 1
+                elif channel.message_encoding != 'cdr' or schema is None or schema.encoding != 'ros2msg':
+                    skipped[f'{channel.topic} (encoding {channel.message_encoding!r}, schema '
+                            f'{schema.encoding if schema is not None else None!r}; expected cdr/ros2msg)'] += 1
+                else:
+                    out.append(BagMessage(channel.topic, schema.name, record.log_time, record.data))
+
         with open(self.path, 'rb') as f:
             try:
-                for record in StreamReader(f, skip_magic=False, emit_chunks=False, validate_crcs=True).records:
-                    if isinstance(record, Header):
-                        self.profile = record.profile
-                    elif isinstance(record, Schema):
-                        schemas[record.id] = record
-                    elif isinstance(record, Channel):
-                        channels[record.id] = record
-                    elif isinstance(record, Metadata):
-                        self.metadata[record.name] = dict(record.metadata)
-                    elif isinstance(record, Message):
-                        channel = channels.get(record.channel_id)
-                        if channel is None:
-                            self.problems.append(f'message on unknown channel {record.channel_id} skipped')
+                for record in StreamReader(f, skip_magic=False, emit_chunks=True).records:
+                    if isinstance(record, Chunk):
+                        try:
+                            inner = breakup_chunk(record, validate_crc=True)
+                        except Exception:  # noqa: BLE001 - a damaged chunk is skipped, the next one is read
+                            damaged_chunks += 1
                             continue
-                        schema = schemas.get(channel.schema_id)
-                        if channel.message_encoding != 'cdr' or schema is None:
-                            self.problems.append(f'{channel.topic}: not a cdr/ros2msg channel, skipped')
-                            continue
-                        out.append(BagMessage(channel.topic, schema.name, record.log_time, record.data))
-            except Exception as err:  # noqa: BLE001 - any damage ends the scan, kept messages stay
+                        for sub in inner:
+                            take(sub)
+                    else:
+                        take(record)
+            except Exception as err:  # noqa: BLE001 - damaged framing ends the scan, kept messages stay
                 self.problems.append(f'stopped reading at damaged data ({type(err).__name__}: {err}); '
                                      f'{len(out)} messages before it were kept')
-        if self.profile is not None and self.profile != 'ros2':
-            self.problems.append(f'profile is {self.profile!r}, expected "ros2"')
-        out.sort(key=lambda m: m.log_time_ns)
-        return out
+        if damaged_chunks:
+            self.problems.append(f'{damaged_chunks} damaged chunk(s) skipped (CRC or compression error); '
+                                 'the messages in them are lost, the rest was read')
+        for what, n in sorted(skipped.items()):
+            self.problems.append(f'{n} message(s) on {what} skipped')
+        return self._order(out)
+
+    def _order(self, messages: list[BagMessage]) -> list[BagMessage]:
+        """Sort by log time (stable), drop repeated stamps on per-frame topics; report both."""
+        out_of_order = sum(1 for a, b in zip(messages, messages[1:]) if b.log_time_ns < a.log_time_ns)
+        if out_of_order:
+            self.problems.append(f'{out_of_order} message(s) stored out of log-time order; played in stamp order')
+        messages.sort(key=lambda m: m.log_time_ns)
+        seen: set[tuple[str, int]] = set()
+        kept: list[BagMessage] = []
+        duplicates: Counter[str] = Counter()
+        for m in messages:
+            if m.topic in self.unique_stamp_topics:
+                key = (m.topic, m.log_time_ns)
+                if key in seen:
+                    duplicates[m.topic] += 1
+                    continue
+                seen.add(key)
+            kept.append(m)
+        for topic, n in sorted(duplicates.items()):
+            self.problems.append(f'{topic}: {n} message(s) with an already seen stamp dropped (duplicates)')
+        return kept
 
     def messages(self, topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
         """Messages in log-time order, optionally only of some topics."""
@@ -226,3 +324,8 @@ class BagReader:
         for m in self.messages():
             out[m.topic] = (m.msgtype, out.get(m.topic, (m.msgtype, 0))[1] + 1)
         return out
+
+    def missing_topics(self, required: Iterable[str]) -> list[str]:
+        """Those `required` topics without a single readable message."""
+        available = self.topics()
+        return [t for t in required if t not in available]
