@@ -43,10 +43,19 @@ _IMAGE_DTYPES = {
 }
 
 
-def image_to_numpy(msg: Image) -> np.ndarray:
+# Largest image side accepted (pixels): beyond it a frame is rejected rather than exhausting memory
+# (a 10000-pixel-wide RGB frame is ~200 MB as float per channel in the encoders).
+MAX_IMAGE_SIDE = 8192
+# Colour encodings of the contract, and those converted to RGB on the way in (the caller reports it).
+COLOUR_ENCODINGS = ('rgb8', 'bgr8')
+CONVERTED_COLOUR_ENCODINGS = ('rgba8', 'bgra8', 'mono8', '8UC1')
+
+
+def image_to_numpy(msg: Image, max_side: int = MAX_IMAGE_SIDE) -> np.ndarray:
     """Image message -> array (H, W) or (H, W, C) in the message's own channel order.
 
-    Raises ConversionError for unsupported encodings or a data size that does not match.
+    Raises ConversionError for unsupported encodings, zero or oversized dimensions, a step shorter than a
+    row, and a data size other than step * height.
     """
     if msg.encoding not in _IMAGE_DTYPES:
         raise ConversionError(f'unsupported image encoding {msg.encoding!r}; supported: {sorted(_IMAGE_DTYPES)}')
@@ -55,21 +64,49 @@ def image_to_numpy(msg: Image) -> np.ndarray:
     row_bytes = msg.width * channels * dtype.itemsize
     if msg.height == 0 or msg.width == 0:
         raise ConversionError('image has zero width or height')
-    if msg.step < row_bytes or len(msg.data) < msg.step * msg.height:
-        raise ConversionError(
-            f'image data too short: {len(msg.data)} bytes for {msg.width}x{msg.height} {msg.encoding} step {msg.step}')
-    buf = np.frombuffer(bytes(msg.data), dtype=np.uint8)[: msg.step * msg.height].reshape(msg.height, msg.step)
+    if max(msg.width, msg.height) > max_side:
+        raise ConversionError(f'image is {msg.width}x{msg.height}: larger than {max_side} pixels on a side '
+                              '(rejected to bound memory; downscale it before publishing)')
+    if msg.step < row_bytes:
+        raise ConversionError(f'image step {msg.step} is shorter than a row ({msg.width} x {channels} x '
+                              f'{dtype.itemsize} = {row_bytes} bytes for {msg.encoding})')
+    if len(msg.data) != msg.step * msg.height:
+        raise ConversionError(f'image data has {len(msg.data)} bytes, expected step x height = '
+                              f'{msg.step} x {msg.height} = {msg.step * msg.height} ({msg.width}x{msg.height} '
+                              f'{msg.encoding}); data too short or too long')
+    buf = np.frombuffer(bytes(msg.data), dtype=np.uint8).reshape(msg.height, msg.step)
     arr = buf[:, :row_bytes].copy().view(dtype).reshape(msg.height, msg.width, channels)
     arr = arr.astype(dtype.newbyteorder('='), copy=False)
     return arr[..., 0] if channels == 1 else arr
 
 
 def image_to_rgb(msg: Image) -> np.ndarray:
-    """Colour image message (rgb8/bgr8/rgba8/bgra8) -> RGB uint8 (H, W, 3)."""
-    if msg.encoding not in ('rgb8', 'bgr8', 'rgba8', 'bgra8'):
-        raise ConversionError(f'colour image must be rgb8 or bgr8, got {msg.encoding!r}')
-    arr = image_to_numpy(msg)[..., :3]
+    """Colour image message -> RGB uint8 (H, W, 3).
+
+    rgb8/bgr8 (the contract's encodings) convert directly; rgba8/bgra8 (alpha dropped) and mono8 (grey
+    replicated) are converted too, see `CONVERTED_COLOUR_ENCODINGS`; anything else (16UC1, 32FC1: an
+    instance or depth image on the colour topic?) raises ConversionError.
+    """
+    if msg.encoding not in COLOUR_ENCODINGS + CONVERTED_COLOUR_ENCODINGS:
+        raise ConversionError(f'colour image must be rgb8 or bgr8 (rgba8, bgra8, mono8 are converted), got '
+                              f'{msg.encoding!r}' + (' (an instance or depth image on the colour topic?)'
+                                                     if msg.encoding in ('16UC1', 'mono16', '32FC1') else ''))
+    arr = image_to_numpy(msg)
+    if arr.ndim == 2:
+        return np.repeat(arr[..., None], 3, axis=2)
+    arr = arr[..., :3]
     return arr[..., ::-1].copy() if msg.encoding.startswith('bgr') else arr
+
+
+def image_size(msg: Image | CameraInfo) -> tuple[int, int]:
+    """(width, height) of an Image or CameraInfo message."""
+    return int(msg.width), int(msg.height)
+
+
+def check_same_size(size: tuple[int, int], expected: tuple[int, int], what: str, reference: str) -> None:
+    """Raise ConversionError naming both when `size` (w, h) of `what` differs from `expected` of `reference`."""
+    if tuple(size) != tuple(expected):
+        raise ConversionError(f'{what} is {size[0]}x{size[1]} but {reference} is {expected[0]}x{expected[1]}')
 
 
 def numpy_to_image(arr: np.ndarray, encoding: str, stamp_ns: int, frame_id: str) -> Image:
@@ -90,9 +127,16 @@ def camera_info_to_K(msg: CameraInfo) -> np.ndarray:
     """Intrinsics (3, 3) from CameraInfo; raises ConversionError when k is unusable."""
     K = np.asarray(msg.k, dtype=np.float64).reshape(3, 3)
     if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise ConversionError(f'camera_info has invalid intrinsics k={list(msg.k)} (fx, fy must be > 0)')
+        raise ConversionError(f'camera_info has invalid intrinsics k={list(msg.k)} (fx, fy must be finite and > 0)')
+    if not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0:
+        raise ConversionError(f'camera_info k={list(msg.k)} is not an upper-triangular pinhole matrix '
+                              '(last row must be 0 0 1)')
     if msg.width == 0 or msg.height == 0:
         raise ConversionError('camera_info has zero width/height')
+    if max(msg.width, msg.height) > MAX_IMAGE_SIDE:
+        raise ConversionError(f'camera_info size {msg.width}x{msg.height} exceeds {MAX_IMAGE_SIDE} pixels')
+    if not np.all(np.isfinite(np.asarray(msg.d, dtype=np.float64))):
+        raise ConversionError(f'camera_info distortion d={list(msg.d)} contains NaN or inf')
     return K
 
 
@@ -106,12 +150,20 @@ def make_camera_info(K: np.ndarray, width: int, height: int, stamp_ns: int, fram
                       r=np.eye(3).ravel().tolist(), p=P.ravel().tolist())
 
 
+# A quaternion whose norm is further than this from 1 is rejected (closer ones are normalised: rounding).
+QUATERNION_NORM_TOLERANCE = 1e-2
+
+
 def pose_to_matrix(pose: Pose) -> np.ndarray:
-    """4x4 transform from geometry_msgs/Pose; raises ConversionError on NaN or zero quaternion."""
+    """4x4 transform from geometry_msgs/Pose; raises ConversionError on NaN/inf or a non-unit quaternion."""
     t = np.array([pose.position.x, pose.position.y, pose.position.z])
     q = np.array([pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w])
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))):
         raise ConversionError('pose contains NaN or inf')
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+        raise ConversionError(f'pose quaternion (x, y, z, w) = {q.tolist()} has norm {norm:.4g}, not 1 '
+                              f'(tolerance {QUATERNION_NORM_TOLERANCE})')
     try:
         return make_transform(quat_to_matrix(q), t)
     except ValueError as err:

@@ -11,12 +11,13 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from sensor_msgs.msg import Image
 
 from frodo_common import conversions as conv
 from frodo_common import topics
-from frodo_common.categories import CATEGORIES, DEFAULT_CLASSES
+from frodo_common.categories import CATEGORIES, DEFAULT_CLASSES, category_by_id
 from frodo_common.frame_cache import FrameCache
 from frodo_common.node import FrodoNode, run_node
 from frodo_common.params import ParamSpec
@@ -71,6 +72,8 @@ class DetectionNode(FrodoNode):
             self.detector = MaskRCNNDetector(p['weights_path'] or None, p['device'], p['score_threshold'],
                                              p['mask_threshold'], self.filter_cfg.classes, int(p['input_min_size']))
         self.cache = FrameCache(('image', 'instances'), int(p['match_window']))
+        self._warned_encodings: set[str] = set()
+        self._warned_categories: set[int] = set()
         self.pub = self.create_publisher(Image, topics.DETECTIONS, topics.FRAME_QOS)
         # Own group: a slow Mask R-CNN call must not block the diagnostics timer.
         group = MutuallyExclusiveCallbackGroup()
@@ -97,29 +100,59 @@ class DetectionNode(FrodoNode):
             self._process(frame.parts['image'], frame.parts['instances'])
 
     def _process(self, image: Image, instances: Image | None) -> None:
-        """Filter (or detect and filter) one frame and publish it; invalid frames are dropped and reported."""
+        """Filter (or detect and filter) one frame and publish it; invalid frames are dropped and reported.
+
+        Checked here, at the graph's entrance, so that later nodes see only valid frames: the colour image
+        decodes (rgba8/bgra8/mono8 are accepted and counted as converted), the instance image is 16UC1 of
+        the image's size; instances of category ids the graph does not know are counted and ignored.
+        """
         stamp = conv.stamp_to_ns(image.header.stamp)
         try:
-            if image.encoding not in ('rgb8', 'bgr8', 'rgba8', 'bgra8'):
-                raise conv.ConversionError(f'image encoding must be rgb8 or bgr8, got {image.encoding!r}')
+            rgb = conv.image_to_rgb(image)
             if instances is None:
-                raw = self.detector.detect(conv.image_to_rgb(image))
+                raw = self.detector.detect(rgb)
             else:
                 if instances.encoding != '16UC1':
                     raise conv.ConversionError(f'instances encoding must be 16UC1, got {instances.encoding!r}')
                 raw = conv.image_to_numpy(instances)
-                if raw.shape != (image.height, image.width):
-                    raise conv.ConversionError(f'instances {raw.shape[1]}x{raw.shape[0]} and image '
-                                               f'{image.width}x{image.height} sizes differ')
+                conv.check_same_size((raw.shape[1], raw.shape[0]), conv.image_size(image), 'instance image',
+                                     'colour image')
         except conv.ConversionError as err:
             self.count('frames_dropped')
             self.report_error(f'frame {stamp}', err)
             return
+        self._note_conversion(image.encoding)
+        self._note_unknown_categories(raw)
         filtered, detections = filter_instances(raw, self.filter_cfg)
         self.pub.publish(conv.numpy_to_image(filtered, '16UC1', stamp, image.header.frame_id))
         self.count('frames_published')
         self.count('detections_published', len(detections))
+        if not detections:
+            self.count('frames_without_detections')
         self.cache.frames.pop(stamp, None)  # processed: free the images (the stamp stays marked complete)
+
+    def _note_conversion(self, encoding: str) -> None:
+        """Count an accepted non-contract colour encoding; warn once per encoding."""
+        if encoding in conv.COLOUR_ENCODINGS:
+            return
+        self.count('images_converted')
+        if encoding not in self._warned_encodings:
+            self._warned_encodings.add(encoding)
+            self.report_error('image', f'encoding {encoding} converted to RGB (the contract asks for rgb8 or bgr8)',
+                              counter='warnings')
+
+    def _note_unknown_categories(self, instances: np.ndarray) -> None:
+        """Count instances whose category id (high byte) is no class the graph knows; warn once per id."""
+        labels = np.unique(instances)
+        unknown = [int(v) for v in labels if v and category_by_id(int(v) >> 8) is None]
+        if not unknown:
+            return
+        self.count('instances_unknown_category', len(unknown))
+        new = sorted({v >> 8 for v in unknown} - self._warned_categories)
+        if new:
+            self._warned_categories.update(new)
+            self.report_error('instances', f'unknown category id(s) {new} (label = category * 256 + k, COCO ids); '
+                              'those instances are ignored', counter='warnings')
 
     def diagnostic_values(self) -> dict[str, Any]:
         return {'backend': self.params['backend'], 'frames_cached': len(self.cache),

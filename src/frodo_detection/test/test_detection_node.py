@@ -76,7 +76,7 @@ def test_external_instances_are_filtered_and_bad_frames_survived(graph):
     assert conv.stamp_to_ns(got['det'][1].header.stamp) == 4000 and not conv.image_to_numpy(got['det'][1]).any()
     assert spin_until(lambda: _status(got).get('frames_dropped') == '2')
     status = _status(got)
-    assert status['frames_published'] == '2' and status['errors'] == '2' and 'sizes differ' in status['last_error']
+    assert status['frames_published'] == '2' and status['errors'] == '2' and 'is 60x20 but colour image is 60x40' in status['last_error']
 
 
 class _StubDetector:
@@ -106,3 +106,33 @@ def test_maskrcnn_backend_runs_the_detector_on_every_image(graph):
     out = conv.image_to_numpy(got['det'][0])
     assert out.shape == (48, 64) and conv.stamp_to_ns(got['det'][0].header.stamp) == 5000
     assert set(np.unique(out)) == {0, CHAIR * 256 + 1} and detector.calls == 2
+
+
+def test_bad_colour_images_and_unknown_categories_are_converted_or_dropped_with_a_diagnostic(graph):
+    add, pubs, got, spin_until = graph
+    add(DetectionNode(parameter_overrides=[Parameter('min_area', value=50), Parameter('diagnostics_period', value=0.2)]))
+    inst = np.zeros((40, 60), np.uint16)
+    inst[5:25, 5:25] = CHAIR * 256 + 1
+    inst[25:38, 30:50] = 200 * 256 + 1                         # category 200: no COCO class
+    rgb = np.random.default_rng(3).integers(0, 255, (40, 60, 3), dtype=np.uint8)
+    bgra = np.concatenate([rgb[..., ::-1], np.full((40, 60, 1), 255, np.uint8)], axis=2)
+    short = conv.numpy_to_image(rgb, 'rgb8', 3000, 'cam')
+    short.data = bytes(short.data)[:-7]                          # step x height != data size
+    wide = conv.numpy_to_image(np.zeros((1, 10000, 3), np.uint8), 'rgb8', 5000, 'cam')
+    frames = [(1000, conv.numpy_to_image(rgb[..., 0], 'mono8', 1000, 'cam'), inst),   # converted
+              (2000, conv.numpy_to_image(bgra, 'bgra8', 2000, 'cam'), inst),            # converted
+              (3000, short, inst),                                                      # dropped
+              (4000, conv.numpy_to_image(inst, '16UC1', 4000, 'cam'), inst),            # dropped: not colour
+              (5000, wide, np.zeros((1, 10000), np.uint16)),                           # dropped: too wide
+              (6000, conv.numpy_to_image(rgb, 'rgb8', 6000, 'cam'), np.zeros_like(inst))]  # empty: published
+    for stamp, image, instances in frames:
+        pubs['instances'].publish(conv.numpy_to_image(instances, '16UC1', stamp, 'cam'))
+        pubs['image'].publish(image)
+    assert spin_until(lambda: len(got['det']) == 3)
+    assert [conv.stamp_to_ns(m.header.stamp) for m in got['det']] == [1000, 2000, 6000]
+    assert set(np.unique(conv.image_to_numpy(got['det'][0]))) == {0, CHAIR * 256 + 1}
+    assert spin_until(lambda: _status(got).get('frames_dropped') == '3')
+    status = _status(got)
+    assert status['images_converted'] == '2' and status['frames_without_detections'] == '1'
+    assert status['instances_unknown_category'] == '2' and status['warnings'] == '3'
+    assert status['errors'] == '3'
