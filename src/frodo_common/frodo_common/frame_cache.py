@@ -1,7 +1,7 @@
 """Stamp-matched frame cache: collects the messages of one frame (same header stamp) with bounded memory."""
 from __future__ import annotations
 
-from collections import OrderedDict
+from collections import Counter, OrderedDict
 from dataclasses import dataclass, field
 from typing import Any, Iterable
 
@@ -24,22 +24,34 @@ class FrameCache:
     `add` returns the frame when it becomes complete for `required` parts (exactly once per stamp),
     so a node processes a frame as soon as its last part arrives, whatever the arrival order.
     Camera info is not per frame: it is held as the latest value (`camera_info`).
+
+    What never completes is accounted for, so a node can say what it missed (a node started late, a
+    silent upstream topic): frames evicted incomplete (`evicted_incomplete`, their missing parts in
+    `missing_parts`) and, via `missed()`, frames still held incomplete although newer stamps have
+    arrived `stale_after_ns` later. A part received twice for one stamp counts in `duplicates`.
     """
 
-    def __init__(self, required: Iterable[str], capacity: int = 400):
+    def __init__(self, required: Iterable[str], capacity: int = 400, stale_after_ns: int = 2_000_000_000):
         self.required = tuple(required)
         self.capacity = int(capacity)
+        self.stale_after_ns = int(stale_after_ns)
         self.frames: OrderedDict[int, Frame] = OrderedDict()
         self.completed: set[int] = set()
         self.evicted_incomplete = 0
+        self.missing_parts: Counter[str] = Counter()
+        self.duplicates = 0
+        self.newest_ns: int | None = None
         self.camera_info = None
 
     def add(self, stamp_ns: int, name: str, value: Any) -> Frame | None:
         """Store a part; return the frame if this part completed it, else None."""
+        self.newest_ns = stamp_ns if self.newest_ns is None else max(self.newest_ns, stamp_ns)
         frame = self.frames.get(stamp_ns)
         if frame is None:
             frame = self.frames[stamp_ns] = Frame(stamp_ns)
             self._evict()
+        elif name in frame.parts:
+            self.duplicates += 1
         frame.parts[name] = value
         if stamp_ns not in self.completed and frame.has(self.required):
             self.completed.add(stamp_ns)
@@ -54,11 +66,25 @@ class FrameCache:
         """Held frames that have every required part, oldest first."""
         return [f for s, f in self.frames.items() if s in self.completed]
 
+    def missed(self) -> tuple[int, Counter]:
+        """(frames that never completed, {part: how many of them lack it}): evicted incomplete ones plus
+        held incomplete ones older than the newest stamp by more than `stale_after_ns`."""
+        parts = Counter(self.missing_parts)
+        count = self.evicted_incomplete
+        if self.newest_ns is not None:
+            limit = self.newest_ns - self.stale_after_ns
+            for stamp, frame in list(self.frames.items()):
+                if stamp < limit and stamp not in self.completed:
+                    count += 1
+                    parts.update(n for n in self.required if n not in frame.parts)
+        return count, parts
+
     def _evict(self) -> None:
         while len(self.frames) > self.capacity:
-            stamp, _ = self.frames.popitem(last=False)
+            stamp, frame = self.frames.popitem(last=False)
             if stamp not in self.completed:
                 self.evicted_incomplete += 1
+                self.missing_parts.update(n for n in self.required if n not in frame.parts)
             self.completed.discard(stamp)
 
     def __len__(self) -> int:

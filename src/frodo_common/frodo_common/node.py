@@ -3,6 +3,13 @@ and `run_node`, the `main()` shared by all node entry points.
 
 A node never crashes the graph on bad input: callbacks wrapped with `guarded` log the error, count it,
 keep it as `last_error` in diagnostics and return.
+
+Diagnostics come from a thread of their own, not from an executor timer: a timer waits behind every
+callback of its group and behind the rest of the batch of ready callbacks the executor took from one
+wait (rclpy runs that batch before it looks at timers again), so under load reports came 1.5-2 s apart.
+The thread starts on the node's first executor spin (so the first report also says "constructed,
+subscribed") and reads the node's values concurrently with its callbacks: `diagnostic_values()`
+overrides must tolerate that (a report whose values changed under it is retried).
 """
 from __future__ import annotations
 
@@ -11,6 +18,7 @@ import os
 import signal
 import sys
 import threading
+import time
 import traceback
 from collections import Counter
 from typing import Any, Callable
@@ -23,12 +31,15 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 from frodo_common import topics
+from frodo_common.frame_cache import FrameCache
 from frodo_common.params import COMMON_PARAMS, ParamSpec
 
 # Diagnostic levels as ints (the message field is a single byte).
 OK, WARN, ERROR = 0, 1, 2
 # Longest wait of the spin loop before the stop flag set by SIGINT / SIGTERM is seen (seconds).
 STOP_POLL_S = 0.1
+# Attempts at collecting a report whose node values changed while being read (RuntimeError from a dict).
+DIAGNOSTICS_ATTEMPTS = 3
 
 
 class FrodoNode(Node):
@@ -49,7 +60,11 @@ class FrodoNode(Node):
         self.last_error = ''
         self._lock = threading.Lock()
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
-        self.create_timer(float(self.params['diagnostics_period']), self.publish_diagnostics)
+        self._diag_stop = threading.Event()
+        self._diag_thread: threading.Thread | None = None
+        self._missed_reported: dict[str, int] = {}
+        # Fires on the first spin, i.e. once the subclass constructor has finished; then cancelled.
+        self._diag_start_timer = self.create_timer(0.01, self._start_diagnostics)
 
     # ------------------------------------------------------------ errors and counters
     def count(self, name: str, n: int = 1) -> None:
@@ -90,13 +105,72 @@ class FrodoNode(Node):
             return WARN, f'running; last error: {self.last_error}'
         return OK, 'running'
 
+    def _start_diagnostics(self) -> None:
+        self._diag_start_timer.cancel()
+        if self._diag_thread is None:
+            self._diag_thread = threading.Thread(target=self._diagnostics_loop, name=f'{self.get_name()}-diagnostics',
+                                                 daemon=True)
+            self._diag_thread.start()
+
+    def _diagnostics_loop(self) -> None:
+        """Report now, then every `diagnostics_period` seconds on a fixed schedule, until the node is destroyed."""
+        period = max(float(self.params['diagnostics_period']), 0.01)
+        due = time.monotonic()
+        while self.context.ok():
+            self.publish_diagnostics()
+            due = max(due + period, time.monotonic())
+            if self._diag_stop.wait(due - time.monotonic()):
+                return
+
+    def destroy_node(self) -> None:
+        """Stop the diagnostics thread, then destroy the node."""
+        self._diag_stop.set()
+        if self._diag_thread is not None and self._diag_thread is not threading.current_thread():
+            self._diag_thread.join(timeout=5.0)
+        super().destroy_node()
+
+    def frame_cache_values(self) -> dict[str, Any]:
+        """What each FrameCache attribute of the node missed; warns when the count grew since the last report.
+
+        Frames that never complete mean data this node did not get: it started after the bag (or a stream)
+        began, or an upstream node or topic is silent. Reported for every node without code of its own.
+        """
+        values: dict[str, Any] = {}
+        for attr, cache in list(vars(self).items()):
+            if not isinstance(cache, FrameCache):
+                continue
+            count, parts = cache.missed()
+            values[f'{attr}_frames_missed'] = count
+            if cache.duplicates:
+                values[f'{attr}_duplicate_parts'] = cache.duplicates
+            if count:
+                missing = ', '.join(f'{part} ({n})' for part, n in parts.most_common())
+                values[f'{attr}_missing_parts'] = missing
+                if count > self._missed_reported.get(attr, 0):
+                    self._missed_reported[attr] = count
+                    self.report_error(attr, f'{count} frame(s) never complete, missing {missing}: started after '
+                                      'the data began, or an upstream node/topic is silent', counter='warnings')
+        return values
+
+    def _collect(self) -> tuple[int, str, dict[str, Any]]:
+        """(level, message, key/values) of one report; retried when node state changed while being read."""
+        for attempt in range(DIAGNOSTICS_ATTEMPTS):
+            try:
+                node_values = {**self.frame_cache_values(), **self.diagnostic_values()}
+                level, message = self.diagnostic_summary()
+                break
+            except RuntimeError:  # a dict of the node resized by a callback while it was read
+                if attempt == DIAGNOSTICS_ATTEMPTS - 1:
+                    raise
+        with self._lock:
+            values = {**dict(self.counters), 'last_error': self.last_error, 'pid': os.getpid()}
+        values.update(node_values)
+        return level, message, values
+
     def publish_diagnostics(self) -> None:
         """Publish one DiagnosticStatus for this node on /diagnostics."""
         try:
-            level, message = self.diagnostic_summary()
-            with self._lock:
-                values = {**dict(self.counters), 'last_error': self.last_error, 'pid': os.getpid()}
-            values.update(self.diagnostic_values())
+            level, message, values = self._collect()
             status = DiagnosticStatus(level=bytes([level]), name=self.get_name(), message=message,
                                       hardware_id=self.get_fully_qualified_name(),
                                       values=[KeyValue(key=str(k), value=str(v)) for k, v in values.items()])
@@ -104,7 +178,8 @@ class FrodoNode(Node):
             msg.header.stamp = self.get_clock().now().to_msg()
             self._diag_pub.publish(msg)
         except Exception as err:  # noqa: BLE001
-            self.get_logger().error(f'diagnostics failed: {err}', throttle_duration_sec=5.0)
+            if self.context.ok():
+                self.get_logger().error(f'diagnostics failed: {err}', throttle_duration_sec=5.0)
 
 
 def run_node(node_factory: Callable[[], Node], args: list[str] | None = None, threads: int = 2) -> int:

@@ -16,3 +16,20 @@ def test_eviction_counts_incomplete():
         cache.add(stamp, 'image', stamp)
     assert len(cache) == 3 and cache.evicted_incomplete == 2
     assert cache.get(0) is None and cache.get(4) is not None
+
+
+def test_missed_frames_name_their_missing_parts_and_duplicates_are_counted():
+    cache = FrameCache(['image', 'detections'], capacity=3, stale_after_ns=10)
+    cache.add(0, 'detections', 'd')          # never gets its image: a late joiner's first frames
+    cache.add(1, 'detections', 'd')
+    assert cache.missed() == (0, {})         # not stale yet: the image may still come
+    cache.add(20, 'image', 'i')
+    cache.add(20, 'detections', 'd')
+    cache.add(20, 'detections', 'again')
+    assert cache.duplicates == 1
+    count, parts = cache.missed()
+    assert count == 2 and parts == {'image': 2}
+    for stamp in (21, 22, 23):
+        cache.add(stamp, 'image', 'i')       # evicts 0, 1 (incomplete) and 20 (complete)
+    count, parts = cache.missed()
+    assert cache.evicted_incomplete == 2 and count == 2 and parts == {'image': 2}
