@@ -1,0 +1,385 @@
+"""Dense optimisation stage (paper Sec. 4.3 "Dense Optimization", supplement "Dense Shape Code Optimization").
+
+Starting from the sparse stage's code and pose, the DeepSDF branch Gd(z, x) of the joint decoder is
+optimised together with a 7-DoF pose x_world = s * R * x_norm + t (R = exp([w]) R0, any rotation).
+Per iteration:
+
+1. an adaptively sampled SDF volume (`frodo_shape.meshing.sdf_grid`: coarse grid, re-evaluated near the
+   zero level set), evaluated without gradients, and a proxy mesh by marching cubes; its vertices (a fixed
+   number, `surface_points`) are the surface points of the photometric term;
+2. the energy  E = ws Es + wp Ep + wg Eg + wd Ed + wr Er  with
+   - Es, dense silhouette (paper Eq. 8/9): per pixel the foreground probability accumulated along its ray
+     from the SDF samples taken as logits, H = 1 - prod_i sig(zeta * f(x_i)), step `ray_step` (paper r/50),
+     compared with the observed mask by the pixel-wise likelihood -log(H Pf + (1 - H)(1 - Pf)). Pixels come
+     from a detection pyramid (levels l with r_min^2 < w h / 4^l < r_max^2, coarse to fine over the
+     iterations; a level's target is the mask averaged over its pixel footprint); `rays_per_view` pixels
+     per view and level are drawn once (seeded). Unknown pixels (other detections, outside the image) are
+     left out. The SDF along rays is read from the volume (trilinear), so the decoder runs once per grid
+     point, not once per ray sample (the paper's reason for the proxy volume: cost independent of views);
+   - Ep, photometric (paper Eq. 5) on the proxy surface points, `photometric.photometric_energy`, with
+     back-face and z-buffer visibility;
+   - Eg, geometric: SLAM landmarks near the object, |SDF| at the landmark in metres, truncated;
+   - Ed, registered depth (CONTRACT v1.1, beyond the paper): |SDF| at back-projected masked depth pixels,
+     truncated;
+   - Er, code regulariser as in the sparse stage.
+3. gradients: pose through the ray/point coordinates; code through
+   - the volume: dEs/dG at the grid samples (autograd through the trilinear reads), pushed through the
+     decoder as one vector-Jacobian product on the band of grid points with non-zero gradient;
+   - the surface points: x(z) with dx/dz = -(df/dx)^+ df/dz (supplement, after Atzmon et al.), i.e.
+     `implicit_surface_points`;
+   - the SDF at landmarks / depth points directly.
+4. Adam step; the state with the lowest energy on a fixed check set (finest pyramid level) is kept, the
+   initial (sparse) state included, so a diverging or useless run rolls back to the sparse result.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from frodo_optim.photometric import LABEL_OBJECT, LABEL_UNKNOWN, DenseView, ViewBatch, photometric_energy
+from frodo_optim.sparse import code_statistics, select_views, slam_points_near
+from frodo_shape.meshing import grid_points, marching_cubes, sdf_grid
+
+
+@dataclass
+class DenseConfig:
+    """Parameters of the dense stage (the node's `dense_*` parameters)."""
+
+    iterations: int = 20
+    max_views: int = 16
+    max_seconds: float = 30.0          # wall-clock bound per object; the best state so far is kept
+    grid_resolution: int = 32          # proxy volume / marching cubes over [-1, 1]^3 (normalised frame)
+    grid_coarse: int = 2               # coarse-to-fine factor of the adaptive volume
+    surface_points: int = 1024         # proxy-mesh vertices used by Ep
+    rays_per_view: int = 192           # pixels per view and pyramid level
+    ray_step: float = 0.04             # normalised units: the unit cube's side (2) / 50
+    sharpness: float = 100.0           # zeta, per normalised SDF unit
+    r_min: float = 40.0                # detection pyramid bounds (paper: 40, 400 px)
+    r_max: float = 400.0
+    mask_confidence: float = 0.95      # Pf on the mask, 1 - Pf off it
+    w_silhouette: float = 1.0
+    w_photometric: float = 0.0
+    w_geometry: float = 0.5
+    w_depth: float = 0.5
+    w_code: float = 0.01
+    geometry_truncation: float = 0.1   # metres (Eg, Ed)
+    photometric_neighbours: int = 2
+    huber_delta: float = 0.1
+    occlusion_tolerance: float = 0.1   # normalised units (times the scale: metres)
+    lr_code: float = 0.005
+    lr_translation: float = 0.005
+    lr_rotation: float = 0.01
+    lr_log_scale: float = 0.005
+    optimise_code: bool = True
+    min_improvement: float = 0.0       # relative drop of the check energy needed to accept the dense result
+    band_points: int = 8192            # most grid points in the code vector-Jacobian product
+    seed: int = 0
+
+
+@dataclass
+class DenseResult:
+    """Outcome of `refine_dense`. improved False: keep the input (sparse) estimate; `reason` says why."""
+
+    code: np.ndarray
+    T_world_object: np.ndarray
+    scale: float
+    rotation: np.ndarray
+    translation: np.ndarray
+    improved: bool = False
+    reason: str = ''
+    energies: dict[str, float] = field(default_factory=dict)
+    initial_energies: dict[str, float] = field(default_factory=dict)
+    iterations: int = 0
+    best_iteration: int = 0
+    views: int = 0
+    seconds: float = 0.0
+    seconds_per_iteration: float = 0.0
+
+    @property
+    def yaw(self) -> float:
+        return float(math.atan2(self.rotation[1, 0], self.rotation[0, 0]))
+
+
+# ------------------------------------------------------------------ geometry helpers
+def so3_exp(w: torch.Tensor) -> torch.Tensor:
+    """Rotation (3, 3) of an axis-angle vector w (3,) (Rodrigues), differentiable also at w = 0."""
+    theta2 = (w * w).sum()
+    theta = torch.sqrt(theta2 + 1e-12)
+    zero = w.new_zeros(())
+    Kx = torch.stack([torch.stack([zero, -w[2], w[1]]), torch.stack([w[2], zero, -w[0]]),
+                      torch.stack([-w[1], w[0], zero])])
+    a = torch.where(theta2 > 1e-8, torch.sin(theta) / theta, 1 - theta2 / 6)
+    b = torch.where(theta2 > 1e-8, (1 - torch.cos(theta)) / (theta2 + 1e-12), 0.5 - theta2 / 24)
+    return torch.eye(3, dtype=w.dtype, device=w.device) + a * Kx + b * (Kx @ Kx)
+
+
+def implicit_surface_points(sdf_fn, x0: torch.Tensor, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Surface points x(z) (P, 3) equal to x0 in value, differentiable in z by the implicit-function rule.
+
+    sdf_fn(x (P, 3), z (C,)) -> (P,). On the level set f(x(z), z) = const, so df/dx dx/dz + df/dz = 0 and
+    the minimum-norm solution is dx/dz = -(df/dx)^+ df/dz = -g (df/dz) / |g|^2 with g = df/dx (along the
+    normal). Implemented as x0 - g (f(x0, z) - f(x0, z).detach()) / |g|^2. Returns (x (P, 3), g (P, 3)).
+    """
+    with torch.enable_grad():
+        xg = x0.detach().clone().requires_grad_(True)
+        g = torch.autograd.grad(sdf_fn(xg, z.detach()).sum(), xg)[0]
+    f = sdf_fn(x0.detach(), z)
+    step = (f - f.detach()) / (g.square().sum(-1) + 1e-9)
+    return x0.detach() - g * step[:, None], g
+
+
+# ------------------------------------------------------------------ rays of the detection pyramid
+@dataclass
+class Rays:
+    """Pixels as rays: origin (V, N, 3) and direction (V, N, 3) in the world, target (V, N) mask fraction,
+    weight (V, N) (0 for unknown pixels)."""
+
+    origin: torch.Tensor
+    direction: torch.Tensor
+    target: torch.Tensor
+    weight: torch.Tensor
+
+
+def pyramid_levels(box_w: float, box_h: float, r_min: float, r_max: float) -> list[int]:
+    """Levels l (coarse first) with r_min^2 < w h / 4^l < r_max^2 (supplement); [0] if the box is smaller."""
+    area = max(box_w * box_h, 1.0)
+    levels = [l for l in range(12) if r_min ** 2 < area / 4 ** l < r_max ** 2]
+    return sorted(levels, reverse=True) or [0]
+
+
+def _level_rays(view: DenseView, level: int, n: int, gen: torch.Generator):
+    """n pixels of one view at one pyramid level: (uv (n, 2), target (n,), weight (n,))."""
+    u0, v0, u1, v1 = view.crop
+    side = u1 - u0
+    S = view.labels.shape[0]
+    spacing = float(2 ** level)
+    k = max(1, int(round(spacing / (side / S))))            # footprint of a level pixel in stored cells
+    lab = torch.as_tensor(view.labels)
+    maps = torch.stack([(lab == LABEL_OBJECT).float(), (lab == LABEL_UNKNOWN).float()])[None]
+    if k > 1:  # the level's target: the mask averaged over the pixel footprint
+        maps = F.avg_pool2d(maps, k, stride=1, padding=k // 2, count_include_pad=False)[..., :S, :S]
+    m = max(1, int(side // spacing))
+    idx = torch.randint(0, m * m, (n,), generator=gen) if m * m > n else torch.randperm(m * m, generator=gen)[:n]
+    if len(idx) < n:
+        idx = idx[torch.randint(0, len(idx), (n,), generator=gen)]
+    uv = torch.stack([u0 + spacing * ((idx % m).float() + 0.5), v0 + spacing * ((idx // m).float() + 0.5)], -1)
+    cell = ((uv - torch.tensor([u0, v0])) / side * S).long().clamp(0, S - 1)
+    fg, unknown = maps[0, 0][cell[:, 1], cell[:, 0]], maps[0, 1][cell[:, 1], cell[:, 0]]
+    return uv, fg, (unknown < 0.5).float()
+
+
+def make_rays(views: list[DenseView], cfg: DenseConfig, phases: int, gen: torch.Generator) -> list[Rays]:
+    """One `Rays` per phase (coarse to fine); view v at phase p uses its level levels_v[p * len / phases]."""
+    per_view = [pyramid_levels(v.box[0], v.box[1], cfg.r_min, cfg.r_max) for v in views]
+    out = []
+    for p in range(phases):
+        uvs, targets, weights = [], [], []
+        for v, levels in zip(views, per_view):   # setup only, not per iteration
+            uv, fg, w = _level_rays(v, levels[min(len(levels) - 1, p * len(levels) // phases)], cfg.rays_per_view, gen)
+            uvs.append(uv), targets.append(fg), weights.append(w)
+        uv = torch.stack(uvs)                                                       # (V, N, 2)
+        K = torch.as_tensor(np.stack([v.K for v in views]), dtype=torch.float32)
+        R_wc = torch.as_tensor(np.stack([v.T_world_camera[:3, :3] for v in views]), dtype=torch.float32)
+        ray_cam = torch.cat([(uv - K[:, None, :2, 2]) / K[:, None, [0, 1], [0, 1]], torch.ones_like(uv[..., :1])], -1)
+        direction = torch.einsum('vij,vnj->vni', R_wc, ray_cam)
+        origin = torch.as_tensor(np.stack([v.T_world_camera[:3, 3] for v in views]),
+                                 dtype=torch.float32)[:, None].expand_as(direction)
+        out.append(Rays(origin.contiguous(), direction, torch.stack(targets), torch.stack(weights)))
+    return out
+
+
+def dense_silhouette(volume: torch.Tensor, R: torch.Tensor, t: torch.Tensor, s: torch.Tensor, rays: Rays,
+                     step: float, sharpness: float, confidence: float) -> torch.Tensor:
+    """Es (paper Eq. 8/9): mean over views of -log(H Pf + (1 - H)(1 - Pf)) over each view's known pixels.
+
+    volume (1, 1, R, R, R): SDF grid indexed [z, y, x] over [-1, 1]^3 (grid_sample layout); R (3, 3), t (3,),
+    s (): the object pose. H = 1 - prod sig(zeta f) over samples every `step` along the ray inside the cube.
+    Differentiable in the volume values and the pose.
+    """
+    o = (rays.origin - t) @ R / s                                                    # (V, N, 3) object frame
+    d = rays.direction @ R
+    d = d / torch.linalg.norm(d, dim=-1, keepdim=True)
+    safe = torch.where(d.abs() < 1e-9, torch.full_like(d, 1e-9), d)
+    t1, t2 = (-1 - o) / safe, (1 - o) / safe
+    t_near = torch.minimum(t1, t2).amax(-1).clamp_min(0)
+    t_far = torch.maximum(t1, t2).amin(-1)
+    n = int(math.ceil(2 * math.sqrt(3) / step))
+    ts = t_near[..., None] + (torch.arange(n, dtype=o.dtype, device=o.device) + 0.5) * step          # (V, N, n)
+    valid = (ts < t_far[..., None]).float()
+    x = o[..., None, :] + ts[..., None] * d[..., None, :]
+    V, N = o.shape[:2]
+    f = F.grid_sample(volume, x.reshape(1, V * N, n, 1, 3), mode='bilinear', padding_mode='border',
+                      align_corners=True).reshape(V, N, n)
+    log_background = (F.logsigmoid(sharpness * f) * valid).sum(-1)                  # log(1 - H)
+    H = 1 - torch.exp(log_background)
+    pf = confidence * rays.target + (1 - confidence) * (1 - rays.target)
+    nll = -torch.log((H * pf + (1 - H) * (1 - pf)).clamp_min(1e-6))
+    return ((nll * rays.weight).sum(1) / rays.weight.sum(1).clamp_min(1.0)).mean()
+
+
+def sdf_distance(prior, points_world: torch.Tensor, z: torch.Tensor, R, t, s, truncation: float) -> torch.Tensor:
+    """Mean truncated |SDF| in metres (divided by the truncation) of world points (M, 3); 0 if none.
+
+    Points outside the decoder's cube [-1, 1]^3 add their distance to it (the decoder is untrained there).
+    """
+    if points_world is None or len(points_world) == 0:
+        return z.new_zeros(())
+    x = (points_world - t) @ R / s
+    inside = x.clamp(-1, 1)
+    f = prior.decoder.sdf(z[None], inside[None])[0]
+    d = s * (f.abs() + torch.linalg.norm(x - inside, dim=-1))
+    return d.clamp(max=truncation).mean() / truncation
+
+
+# ------------------------------------------------------------------ stage
+def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView], slam_points: np.ndarray | None = None,
+                 box=None, config: DenseConfig | None = None) -> DenseResult:
+    """Dense code + 7-DoF pose refinement of one object from its sparse estimate (paper Sec. 4.3).
+
+    prior: `ShapePrior` (decoder.sdf, sdf_numpy, training_codes); code (C,), T_world_object (4, 4) similarity:
+    the sparse result; views: `DenseView`s (at most config.max_views, spread evenly); slam_points (N, 3) world
+    landmarks or None; box (centre, size, yaw) to select landmarks (None: all landmarks within the object's
+    cube). Never raises on bad input: returns the input with improved=False and a reason.
+    """
+    cfg = config or DenseConfig()
+    start = time.perf_counter()
+    code = np.asarray(code, dtype=np.float32)
+    T0 = np.asarray(T_world_object, dtype=np.float64)
+    s0 = float(np.linalg.norm(T0[:3, 0]))
+    R0 = T0[:3, :3] / max(s0, 1e-12)
+
+    def unchanged(reason: str, **extra) -> DenseResult:
+        return DenseResult(code, T0, s0, R0, T0[:3, 3].copy(), improved=False, reason=reason, views=len(views),
+                           seconds=time.perf_counter() - start, **extra)
+
+    if not (np.isfinite(code).all() and np.isfinite(T0).all() and s0 > 0):
+        return unchanged('non-finite code or pose')
+    views = [v for v in views if v is not None and np.isfinite(v.K).all() and np.isfinite(v.T_world_camera).all()
+             and (v.labels == LABEL_OBJECT).any()]
+    views = select_views(views, cfg.max_views)
+    if not views:
+        return unchanged('no usable views')
+
+    dev = torch.device(getattr(prior, 'device', 'cpu'))
+    gen = torch.Generator().manual_seed(int(cfg.seed))
+    Rg = max(8, int(cfg.grid_resolution))
+    phases = max(len(pyramid_levels(v.box[0], v.box[1], cfg.r_min, cfg.r_max)) for v in views)
+    phase_rays = [Rays(*(x.to(dev) for x in (r.origin, r.direction, r.target, r.weight)))
+                  for r in make_rays(views, cfg, phases, gen)]
+    check_rays = phase_rays[-1]
+    batch = ViewBatch(views, dev)
+    if box is not None:
+        slam = slam_points_near(slam_points, box[0], box[1], float(box[2]), margin=0.1 * float(np.max(box[1])) + 0.05)
+    else:
+        slam = np.zeros((0, 3), np.float32) if slam_points is None else np.asarray(slam_points, np.float32)
+    slam_t = torch.as_tensor(slam, device=dev) if len(slam) >= 5 and cfg.w_geometry > 0 else None
+    depth = [v.depth_points for v in views if v.depth_points is not None and len(v.depth_points)]
+    depth_t = None
+    if depth and cfg.w_depth > 0:
+        depth_t = torch.as_tensor(np.concatenate(depth), device=dev)
+        if len(depth_t) > 2048:
+            depth_t = depth_t[torch.randperm(len(depth_t), generator=gen)[:2048].to(dev)]
+    mu, sigma = (x.to(dev) for x in code_statistics(prior.training_codes))
+    grid_xyz = torch.as_tensor(grid_points(Rg).reshape(-1, 3), device=dev)
+    cell = 2.0 / (Rg - 1)
+
+    def sdf_fn(x, zz):
+        return prior.decoder.sdf(zz[None], x[None])[0]
+
+    z = torch.as_tensor(code, device=dev).clone().requires_grad_(cfg.optimise_code)
+    w = torch.zeros(3, device=dev, requires_grad=True)
+    t = torch.as_tensor(T0[:3, 3], dtype=torch.float32, device=dev).clone().requires_grad_(True)
+    log_s = torch.tensor(math.log(s0), device=dev, requires_grad=True)
+    R0_t = torch.as_tensor(R0, dtype=torch.float32, device=dev)
+    groups = [{'params': [w], 'lr': cfg.lr_rotation}, {'params': [t], 'lr': cfg.lr_translation},
+              {'params': [log_s], 'lr': cfg.lr_log_scale}]
+    if cfg.optimise_code:
+        groups.append({'params': [z], 'lr': cfg.lr_code})
+    opt = torch.optim.Adam(groups)
+    best, initial, done, reason_stop = None, None, 0, ''
+    iters = max(0, int(cfg.iterations))
+    loop_start = time.perf_counter()
+    for it in range(iters + 1):
+        zc = z.detach()
+        grid = sdf_grid(lambda p: prior.sdf_numpy(p, zc.cpu().numpy()), Rg, coarse=max(1, int(cfg.grid_coarse)))
+        mesh = marching_cubes(grid)
+        if len(mesh.vertices) == 0 or not np.isfinite(grid).all():
+            reason_stop = f'code of iteration {it} has no surface'
+            break
+        volume = torch.as_tensor(np.ascontiguousarray(grid.transpose(2, 1, 0)), device=dev)[None, None].requires_grad_(True)
+        R = so3_exp(w) @ R0_t
+        s = torch.exp(log_s)
+        rays = phase_rays[min(phases - 1, it * phases // max(iters, 1))]
+        terms = {'silhouette': dense_silhouette(volume, R, t, s, rays, cfg.ray_step, cfg.sharpness, cfg.mask_confidence)}
+        verts = torch.as_tensor(mesh.vertices, dtype=torch.float32, device=dev)
+        if len(verts) > cfg.surface_points:
+            verts = verts[torch.randperm(len(verts), generator=gen)[:cfg.surface_points].to(dev)]
+        terms['photometric'] = z.new_zeros(())
+        if cfg.w_photometric > 0 and batch.has_rgb:
+            x, g = implicit_surface_points(sdf_fn, verts, z)
+            world = s * x @ R.T + t
+            normals = (g / torch.linalg.norm(g, dim=-1, keepdim=True).clamp_min(1e-9)) @ R.T
+            terms['photometric'] = photometric_energy(batch, world, cfg.photometric_neighbours, cfg.huber_delta,
+                                                      cfg.occlusion_tolerance * s.detach(), normals.detach())
+        terms['geometry'] = sdf_distance(prior, slam_t, z, R, t, s, cfg.geometry_truncation) if slam_t is not None \
+            else z.new_zeros(())
+        terms['depth'] = sdf_distance(prior, depth_t, z, R, t, s, cfg.geometry_truncation) if depth_t is not None \
+            else z.new_zeros(())
+        terms['code'] = (((z - mu) / sigma) ** 2).mean()
+        weights = {'silhouette': cfg.w_silhouette, 'photometric': cfg.w_photometric, 'geometry': cfg.w_geometry,
+                   'depth': cfg.w_depth, 'code': cfg.w_code}
+        total = sum(weights[k] * v for k, v in terms.items())
+        with torch.no_grad():   # the check energy: same terms, silhouette on the fixed finest-level rays
+            sil_check = terms['silhouette'] if rays is check_rays else dense_silhouette(
+                volume, R, t, s, check_rays, cfg.ray_step, cfg.sharpness, cfg.mask_confidence)
+            check = float(total - cfg.w_silhouette * terms['silhouette'] + cfg.w_silhouette * sil_check)
+            values = {k: float(v) for k, v in terms.items()} | {'silhouette': float(sil_check), 'total': check}
+        if initial is None:
+            initial = values
+        if not math.isfinite(check):
+            reason_stop = f'energy not finite at iteration {it}'
+            break
+        if best is None or check < best[0]:
+            best = (check, it, zc.clone(), R.detach().clone(), t.detach().clone(), float(log_s.detach()), values)
+        if it == iters:
+            break
+        if time.perf_counter() - start > cfg.max_seconds:
+            reason_stop = f'time limit {cfg.max_seconds:g}s after {it} iterations'
+            break
+        opt.zero_grad(set_to_none=True)
+        total.backward()
+        if cfg.optimise_code and volume.grad is not None:
+            # dEs/dz = sum_grid dEs/dG * dG/dz: one vector-Jacobian product on the band with non-zero gradient
+            gv = volume.grad[0, 0].permute(2, 1, 0).reshape(-1)                     # back to [i, j, k] order
+            band = (gv != 0) & (torch.as_tensor(grid, device=dev).reshape(-1).abs() < 3 * cell)
+            idx = torch.nonzero(band).squeeze(1)
+            if len(idx) > cfg.band_points:
+                idx = idx[torch.topk(gv[idx].abs(), cfg.band_points).indices]
+            if len(idx):
+                (sdf_fn(grid_xyz[idx], z) * gv[idx]).sum().backward()
+        opt.step()
+        done = it + 1
+    per_it = (time.perf_counter() - loop_start) / max(done + 1, 1)
+    if best is None:
+        return unchanged(reason_stop or 'no iteration', initial_energies=initial or {})
+    e_best, best_it, zb, Rb, tb, lsb, values_b = best
+    sb = math.exp(lsb)
+    T = np.eye(4)
+    T[:3, :3] = sb * Rb.double().cpu().numpy()
+    T[:3, 3] = tb.double().cpu().numpy()
+    e0 = initial['total']
+    improved = best_it > 0 and e_best < e0 - cfg.min_improvement * abs(e0)
+    reason = (f'E {e0:.3f}->{e_best:.3f} at iteration {best_it}/{done}' if improved
+              else f'dense did not lower the energy (E {e0:.3f}, best at iteration 0 of {done}); sparse kept')
+    if reason_stop:
+        reason += f'; stopped: {reason_stop}'
+    if not improved:
+        return unchanged(reason, energies=values_b, initial_energies=initial, iterations=done,
+                         seconds_per_iteration=per_it)
+    return DenseResult(zb.cpu().numpy().astype(np.float32), T, sb, Rb.double().cpu().numpy(), tb.double().cpu().numpy(), True, reason,
+                       values_b, initial, done, best_it, len(views), time.perf_counter() - start, per_it)
