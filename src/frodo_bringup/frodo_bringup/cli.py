@@ -20,6 +20,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     'record': ('frodo_bringup.cli_record', 'Record live topics into a rosbag2-compatible MCAP file.'),
     'params': ('frodo_bringup.cli_params', 'Print (or --write) the parameter YAML generated from the nodes.'),
     'synth': ('frodo_datasets.cli_synth', 'Render a synthetic scene into a contract bag with ground truth.'),
+    'convert': ('frodo_datasets.cli_convert', 'Convert a ScanNet, Redwood, TUM RGB-D sequence or your own folder into a contract bag.'),
     'eval': ('frodo_bringup.cli_eval', 'Score objects.json against ground truth (CONTRACT.md protocol).'),
     'train': ('frodo_shape.cli_train', 'Train a shape prior (joint SDF + point decoder).'),
     'demo': ('frodo_bringup.cli_demo', 'Reconstruct the demo bag (or a fresh synthetic scene) and score it against its ground truth.'),

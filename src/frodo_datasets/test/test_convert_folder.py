@@ -1,0 +1,81 @@
+"""`frodo convert folder`: users' own images + poses (TUM lines, 4x4 per line, or one 4x4 file per frame) +
+intrinsics YAML, with depth and contract instance masks; and without depth (landmarks from ORB features)."""
+import shutil
+
+import numpy as np
+import pytest
+
+from frodo_common.geometry import make_transform, quat_to_matrix
+from frodo_datasets.convert import ConvertError, ConvertOptions, convert_folder
+from frodo_datasets.convert.fixtures import read_with_rosbags, render_sequence, write_folder
+from frodo_datasets.convert.folder import read_intrinsics
+
+
+@pytest.fixture(scope='module')
+def sequence():
+    return render_sequence(frames=10, width=128, height=96, seed=1, layout='orbit', objects=2)
+
+
+def _poses(msgs):
+    out = []
+    for _, m in msgs['/camera/pose']:
+        p = m.pose
+        out.append(make_transform(quat_to_matrix([p.orientation.x, p.orientation.y, p.orientation.z,
+                                                  p.orientation.w]), [p.position.x, p.position.y, p.position.z]))
+    return out
+
+
+@pytest.mark.parametrize('pose_format', ['tum', '4x4', 'dir'])
+def test_every_pose_format_gives_the_true_poses_and_instances(sequence, tmp_path, pose_format):
+    folder = write_folder(sequence, tmp_path / 'run', pose_format)
+    summary = convert_folder(folder, tmp_path / 'run.mcap', ConvertOptions(gravity='none'))
+    assert summary.frames_written == 10 and not summary.skipped
+    msgs = read_with_rosbags(tmp_path / 'run.mcap')
+    for T, true in zip(_poses(msgs), sequence.poses):
+        assert np.allclose(T, true, atol=1e-6)
+    inst = msgs['/camera/instances'][4][1]
+    pixels = np.frombuffer(bytes(inst.data), '<u2').reshape(inst.height, inst.width)
+    # the mask of each object sits where the renderer saw it
+    for obj in sequence.scene.objects:
+        seen = sequence.labels[4] == obj.id
+        if seen.sum() > 20:
+            values, counts = np.unique(pixels[seen], return_counts=True)
+            assert (values[np.argmax(counts)] >> 8) == obj.coco_id
+    assert len(msgs['/slam/points']) == 2 and 'depth' in summary.landmarks
+
+
+def test_without_depth_landmarks_come_from_features(sequence, tmp_path):
+    folder = write_folder(sequence, tmp_path / 'run', 'tum')
+    shutil.rmtree(folder / 'depth')
+    summary = convert_folder(folder, tmp_path / 'rgb_only.mcap')
+    msgs = read_with_rosbags(tmp_path / 'rgb_only.mcap')
+    assert '/camera/depth/image_raw' not in msgs and summary.landmarks.startswith('features')
+    assert 'camera mean up' in summary.gravity  # no depth: gravity from the cameras
+
+
+def test_clear_errors_and_nothing_half_written(sequence, tmp_path):
+    folder = write_folder(sequence, tmp_path / 'run', '4x4')
+    lines = (folder / 'poses.txt').read_text().splitlines()
+    (folder / 'poses.txt').write_text('\n'.join(lines[:-2]) + '\n')
+    with pytest.raises(ConvertError, match='mismatched counts: 10 images but 8 poses'):
+        convert_folder(folder, tmp_path / 'x.mcap')
+    (folder / 'poses.txt').write_text('\n'.join(lines) + '\n')
+    for img in (folder / 'rgb').iterdir():  # every colour image unreadable
+        img.write_bytes(b'not an image')
+    with pytest.raises(ConvertError):
+        convert_folder(folder, tmp_path / 'x.mcap')
+    assert not list(tmp_path.glob('x.mcap*'))
+    (folder / 'intrinsics.yaml').write_text('fx: 100\n')
+    with pytest.raises(ConvertError, match='incomplete intrinsics'):
+        convert_folder(folder, tmp_path / 'x.mcap')
+    with pytest.raises(ConvertError, match='no colour image folder'):
+        convert_folder(tmp_path, tmp_path / 'x.mcap')
+
+
+def test_ros_camera_info_yaml(tmp_path):
+    path = tmp_path / 'cam.yaml'
+    path.write_text('image_width: 640\nimage_height: 480\ncamera_matrix:\n  rows: 3\n  cols: 3\n'
+                    '  data: [500, 0, 320, 0, 501, 240, 0, 0, 1]\ndistortion_model: plumb_bob\n'
+                    'distortion_coefficients:\n  rows: 1\n  cols: 5\n  data: [0.1, 0, 0, 0, 0]\n')
+    K, dist, size = read_intrinsics(path)
+    assert K[1, 1] == 501 and dist[0] == 0.1 and size == (640, 480)
