@@ -254,13 +254,14 @@ def write_scannet_scene_files(seq: RenderedSequence, folder: Path, scene_name: s
 
 def write_scannet(seq: RenderedSequence, folder: Path, layout: str = 'exported', scene_name: str = 'scene0000_00',
                   invalid_pose: Sequence[int] = (), missing_color: Sequence[int] = (), annotations: bool = True,
-                  scene_files: bool = True, depth_scale: int = 2) -> Path:
+                  scene_files: bool = True, depth_scale: int = 2, color_scale: int = 1) -> Path:
     """A ScanNet scene folder.
 
     layout 'exported': SensReader's output (color/N.jpg, depth/N.png mm, pose/N.txt, intrinsic/*.txt);
     'sens': `<scene>.sens` (version 4: header with 4x4 colour/depth intrinsics and extrinsics, JPEG colour,
     zlib depth in mm, per frame camera-to-world and microsecond timestamps). Depth is written at 1/depth_scale
-    of the colour resolution (as ScanNet's 640x480 depth beside 1296x968 colour). Frames in `invalid_pose`
+    of the render resolution and colour at `color_scale` times it (ScanNet: 1296x968 colour, 640x480 depth
+    and annotations; annotations stay at the render resolution). Frames in `invalid_pose`
     get a -inf pose; colour of `missing_color` is left out (exported layout). With `annotations`,
     instance-filt/N.png (8-bit objectId + 1) and label-filt/N.png (16-bit label ids) and the label table;
     with `scene_files` the mesh, segments and aggregation files.
@@ -270,7 +271,8 @@ def write_scannet(seq: RenderedSequence, folder: Path, layout: str = 'exported',
     dw, dh = w // depth_scale, h // depth_scale
     K_d = scale_intrinsics(seq.K, (w, h), (dw, dh))
     K4, K4d = np.eye(4), np.eye(4)
-    K4[:3, :3], K4d[:3, :3] = seq.K, K_d
+    K4[:3, :3], K4d[:3, :3] = scale_intrinsics(seq.K, (w, h), (w * color_scale, h * color_scale)), K_d
+    colors = [cv2.resize(c, (w * color_scale, h * color_scale), interpolation=cv2.INTER_LINEAR) for c in seq.rgb]
     poses = []
     for k, T in enumerate(seq.poses):
         P = np.array(T, dtype=np.float64)
@@ -279,7 +281,7 @@ def write_scannet(seq: RenderedSequence, folder: Path, layout: str = 'exported',
         poses.append(P)
     depths = [cv2.resize(_depth_units(d, 1000.0), (dw, dh), interpolation=cv2.INTER_NEAREST) for d in seq.depth]
     if layout == 'exported':
-        for k, (rgb, P) in enumerate(zip(seq.rgb, poses)):
+        for k, (rgb, P) in enumerate(zip(colors, poses)):
             if k not in missing_color:
                 _write_rgb(folder / 'color' / f'{k}.jpg', rgb)
             _write_png16(folder / 'depth' / f'{k}.png', depths[k])
@@ -290,7 +292,7 @@ def write_scannet(seq: RenderedSequence, folder: Path, layout: str = 'exported',
                         ('extrinsic_depth', np.eye(4))):
             (folder / 'intrinsic' / f'{name}.txt').write_text(_matrix_text(M))
     elif layout == 'sens':
-        write_sens(folder / f'{scene_name}.sens', seq.rgb, depths, poses, K4, K4d)
+        write_sens(folder / f'{scene_name}.sens', colors, depths, poses, K4, K4d)
     else:
         raise ValueError(f'unknown ScanNet layout {layout!r}')
     if annotations:
