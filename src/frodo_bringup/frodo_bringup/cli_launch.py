@@ -1,4 +1,7 @@
-"""`frodo launch`: start the node graph, one process per node, until Ctrl-C / SIGTERM or a failure."""
+"""`frodo launch`: start the node graph, one process per node, until Ctrl-C / SIGTERM or a failure.
+
+It says when the graph is ready (every node up and subscribed; also on /diagnostics as `frodo_launch`)
+and names nodes that came up after frames had entered the graph (see `readiness.GraphMonitor`)."""
 from __future__ import annotations
 
 import argparse
@@ -6,7 +9,8 @@ import sys
 
 from frodo_bringup.graph import NODES, GraphError, parse_node_spec, select_nodes, with_nodes
 from frodo_bringup.launcher import FAILURE_POLICIES, Launcher, describe_returncode
-from frodo_bringup.session import stop_on_signals
+from frodo_bringup.readiness import GraphMonitor
+from frodo_bringup.session import RosSession, stop_on_signals
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -35,9 +39,11 @@ def run(args: argparse.Namespace) -> int:
     except GraphError as err:
         print(f'frodo launch: error: {err}', file=sys.stderr)
         return 2
-    with stop_on_signals(on_repeat=launcher.kill) as stop:
+    with stop_on_signals(on_repeat=launcher.kill) as stop, RosSession('frodo_launch') as session:
+        GraphMonitor(session.node, launcher.node_names, launcher.log, pids=lambda: launcher.pids)
         launcher.start()
-        launcher.log(f'graph up: {", ".join(launcher.node_names)} (Ctrl-C to stop, twice to kill)')
+        launcher.log(f'started: {", ".join(launcher.node_names)} (Ctrl-C to stop, twice to kill); '
+                     "play a bag once the graph is ready (frodo play --wait-ready)")
         stopping = False
         while not launcher.wait(0.1):
             if stop.is_set() and not stopping:

@@ -3,9 +3,15 @@ from __future__ import annotations
 
 import argparse
 import sys
+import threading
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray
 
 from frodo_bringup.player import REQUIRED_INPUTS, Player, PlayerError, parse_remaps
+from frodo_bringup.readiness import launch_ready
 from frodo_bringup.session import RosSession, stop_on_signals
+from frodo_common import topics
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -25,6 +31,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--wait-subscribers', type=float, default=0.0, metavar='S',
                         help='before playing, wait up to S s for a subscriber on each of '
                              f'{", ".join(REQUIRED_INPUTS)} (those in the bag)')
+    parser.add_argument('--wait-ready', type=float, default=0.0, metavar='S',
+                        help='before playing, wait up to S s until `frodo launch` reports the graph ready '
+                             '(every node up and subscribed)')
     parser.add_argument('--no-progress', action='store_true', help='no progress bar')
 
 
@@ -47,6 +56,9 @@ def run(args: argparse.Namespace) -> int:
         if missing and args.topics is None:
             print(f'frodo play: warning: the bag has no message on required input(s) {", ".join(missing)} '
                   '(CONTRACT.md); the graph will produce nothing from it', file=sys.stderr)
+        if args.wait_ready > 0 and not _wait_ready(session, args.wait_ready, stop):
+            print(f'frodo play: warning: no "graph ready" from frodo launch within {args.wait_ready:g} s; '
+                  'playing anyway', file=sys.stderr)
         if args.wait_subscribers > 0:
             unmatched = player.wait_for_subscribers(args.wait_subscribers, stop=stop)
             if unmatched:
@@ -57,6 +69,18 @@ def run(args: argparse.Namespace) -> int:
     print(f'frodo play: published {stats.total} messages on {len(stats.published)} topics in '
           f'{stats.seconds:.1f} s' + (' (interrupted)' if stats.interrupted else ''), file=sys.stderr)
     return 1 if stats.interrupted else 0
+
+
+def _wait_ready(session: RosSession, timeout: float, stop: threading.Event) -> bool:
+    """Wait until a `frodo launch` reports its graph ready on /diagnostics; False on timeout or stop."""
+    ready = threading.Event()
+    subscription = session.node.create_subscription(
+        DiagnosticArray, topics.DIAGNOSTICS, lambda msg: ready.set() if launch_ready(msg) else None, 50)
+    deadline = time.monotonic() + timeout
+    while not ready.wait(0.1) and not stop.is_set() and time.monotonic() < deadline:
+        pass
+    session.node.destroy_subscription(subscription)
+    return ready.is_set()
 
 
 def _fail(err: Exception) -> int:
