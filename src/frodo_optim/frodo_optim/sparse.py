@@ -38,6 +38,8 @@ import torch
 import torch.nn.functional as F
 from scipy.ndimage import distance_transform_edt
 
+from frodo_optim import placement
+
 DT_SIZE = 64          # cells per side of a view's distance-transform crop
 DT_MARGIN = 0.6       # the crop extends this fraction of the box size beyond each side of the detection box
 
@@ -60,6 +62,9 @@ class SparseConfig:
     lr_yaw: float = 0.02              # radians per step
     lr_log_scale: float = 0.01
     optimise_code: bool = True
+    placement_search: bool = True     # also start from placement.py's hypotheses (a wrong box); false: box only
+    placement_keep: int = 6           # hypotheses compared with the exact energy
+    placement_truncation: float = 0.3  # metres, Eg truncation when scoring hypotheses (wider basin)
     seed: int = 0
 
 
@@ -98,6 +103,8 @@ class SparseResult:
     energies: dict[str, float] = field(default_factory=dict)
     initial_energies: dict[str, float] = field(default_factory=dict)
     init_yaw: float = 0.0
+    placement: str = ''               # the initial placement that won ('input box', 'ray centre, ...')
+    input_energy: float = math.nan    # energy of the input box placement (best of its 4 symmetric yaws)
     iterations: int = 0
     best_iteration: int = 0
     views: int = 0
@@ -298,8 +305,6 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
     gen = torch.Generator().manual_seed(int(cfg.seed))
     batch = _Batch(views)
     subset = torch.randperm(pts0.shape[0], generator=gen)[:min(cfg.point_samples, pts0.shape[0])]
-    slam = slam_points_near(slam_points, center, size, box_yaw, margin=0.1 * float(size.max()) + 0.05)
-    slam_t = torch.as_tensor(slam) if len(slam) >= 5 and cfg.w_geometry > 0 else None
     mu, sigma = code_statistics(prior.training_codes)
     pts0_np = pts0.numpy().astype(np.float64)
 
@@ -312,23 +317,37 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
         return total, terms
 
     z0 = torch.as_tensor(code)
-    # ---- initialisation: exhaustive yaw search about gravity, box translation and scale
+    # ---- initialisation: exhaustive yaw search about gravity with the box's translation and scale, plus the
+    # placement hypotheses of placement.py (for a wrong box); the box's four symmetric yaws (the input
+    # placement) are always candidates
     if init_yaw is None or not np.isfinite(init_yaw):
         n = max(1, int(cfg.yaw_candidates))
-        candidates = box_yaw + 2 * np.pi * np.arange(n) / n
+        yaws = box_yaw + 2 * np.pi * np.arange(n) / n
     else:
-        candidates = np.array([float(init_yaw)])
+        yaws = np.array([float(init_yaw)])
+    candidates = [(float(y), *box_init(pts0_np, center, size, y), 'input box') for y in box_yaw + np.pi / 2 * np.arange(4)]
+    candidates += [(float(y), *box_init(pts0_np, center, size, y), 'box') for y in yaws]
+    if cfg.placement_search and len(yaws) > 1:
+        candidates += [(h.yaw, h.translation, h.scale, h.source) for h in placement.search(
+            pts0_np, (center, size, box_yaw), views, batch, slam_points, yaws, crop_margin=DT_MARGIN,
+            w_silhouette=cfg.w_silhouette, w_geometry=cfg.w_geometry, truncation=cfg.placement_truncation,
+            keep=cfg.placement_keep, seed=cfg.seed)]
+    # landmarks near the input box and near every hypothesis: one set for all, so that their energies compare
+    boxes = [(center, size, box_yaw)] + [placement.placed_box(pts0_np, y, t, s) for y, t, s, src in candidates[4 + len(yaws):]]
+    near = [slam_points_near(slam_points, c, sz, y, margin=0.1 * float(np.max(sz)) + 0.05) for c, sz, y in boxes]
+    slam = near[0] if len(near) == 1 else np.unique(np.concatenate(near), axis=0)
+    slam_t = torch.as_tensor(slam) if len(slam) >= 5 and cfg.w_geometry > 0 else None
     scores = []
     with torch.no_grad():
-        for yaw in candidates:
-            t, s = box_init(pts0_np, center, size, yaw)
-            e, _ = energy(pts0, z0, torch.tensor(float(yaw)), torch.as_tensor(t, dtype=torch.float32),
+        for yaw, t, s, _ in candidates:
+            e, _ = energy(pts0, z0, torch.tensor(yaw), torch.as_tensor(t, dtype=torch.float32),
                           torch.tensor(math.log(s)))
             scores.append(float(e) if torch.isfinite(e) else np.inf)
     if not np.isfinite(scores).any():
         return fallback('energy is not finite for any yaw candidate', pts=pts0_np)
-    yaw0 = float(candidates[int(np.argmin(scores))])
-    t0, s0 = box_init(pts0_np, center, size, yaw0)
+    yaw0, t0, s0, source = candidates[int(np.argmin(scores))]
+    first_input = int(np.argmin(scores[:4]))
+    input_energy = scores[first_input]
 
     # ---- joint optimisation of code, yaw, translation, log-scale (Adam, fixed iterations)
     z = z0.clone().requires_grad_(cfg.optimise_code)
@@ -359,11 +378,16 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
         total.backward()
         opt.step()
         done = it + 1
-    _, best_it, zb, yb, tb, lsb, terms_b = best
+    best_e, best_it, zb, yb, tb, lsb, terms_b = best
     s = math.exp(lsb)
+    reason = ''
+    if not best_e < input_energy:   # never worse than the input: keep the input placement, say so
+        yb, tb, s = candidates[first_input][:3]
+        zb, reason = z0, f'input placement kept (energy {input_energy:.4f}, nothing lower found)'
     yb = float(math.atan2(math.sin(yb), math.cos(yb)))
-    return SparseResult(zb.cpu().numpy().astype(np.float32), pose_matrix(yb, tb, s), float(s), yb, tb,
-                        energies=terms_b, initial_energies=initial_terms, init_yaw=yaw0, iterations=done,
+    return SparseResult(zb.cpu().numpy().astype(np.float32), pose_matrix(yb, tb, s), float(s), yb, np.asarray(tb),
+                        reason=reason, energies=terms_b, initial_energies=initial_terms, init_yaw=yaw0,
+                        placement=source, input_energy=input_energy, iterations=done,
                         best_iteration=best_it, views=len(views), seconds=time.perf_counter() - start)
 
 

@@ -1,0 +1,292 @@
+"""Placement hypotheses for the sparse stage: survive a wrong initial box (paper Sec. 4.3 "Initialization").
+
+The paper initialises translation and scale from the object's 3D box (Sec. 4.1) and searches only the
+rotation. On real captures that box can be 10-40 cm off and a factor 2 wrong in scale; the local
+optimisation then cannot recover (the 10 cm truncation of Eg misses the landmarks, and the silhouettes
+pull the shape into the part of the object it already covers). This module proposes placements from the
+object's own evidence and scores them all in one batched pass; the sparse stage then compares the best few
+with its exact energy next to the input box's own candidates (so the input placement is never lost).
+
+Hypotheses (centre, scale, yaw):
+
+- centre: the input box centre; the least-squares intersection of the rays through the detection boxes'
+  centres (robust: Huber-reweighted, views whose detection touches the image border left out); and points
+  on the mean viewing direction through it (+-15 and +-30 cm: depth is the weakly constrained direction
+  of a walk);
+- scale: per centre and yaw, the median over views of observed / predicted detection-box diagonal (the
+  projected size is nearly linear in the scale at a fixed centre; one fixed-point refinement), times
+  {1/1.25, 1, 1.25}; and the input box's scale;
+- yaw: the sparse stage's yaw candidates.
+
+Score (lower is better), per hypothesis over all views at once:
+
+    score = ws * (E_out + E_box) + wg * Eg_wide
+
+- E_out: the points -> mask half of the silhouette term Es (distance-transform lookup of the projected
+  points, box diagonals), as in `sparse._Batch.silhouette`;
+- E_box: mean absolute difference between the sides of the projected points' 2D box and the detection's
+  box, in box diagonals; sides at the image border are skipped (truncated detections). A cheap stand-in
+  for the mask -> points half of Es (which needs nearest neighbours per hypothesis) that penalises too
+  small or displaced shapes, which E_out alone does not;
+- Eg_wide: the geometry term (landmarks -> nearest surface point) truncated at `truncation` (0.3 m, three
+  times the sparse stage's 10 cm: a wider basin), over the landmarks of a region covering every
+  hypothesis, the same set for all of them so that scores compare.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+DEPTH_OFFSETS = (-0.3, -0.15, 0.15, 0.3)     # metres along the mean viewing direction through the ray centre
+SCALE_FACTORS = (1 / 1.25, 1.0, 1.25)         # around the silhouette scale
+SCALE_RANGE = (1 / 3, 3.0)                    # hypotheses' scales relative to the input box scale
+
+
+@dataclass
+class Hypothesis:
+    """One placement: x_world = scale * R(yaw) * x_norm + translation; `source` names where it came from."""
+
+    yaw: float
+    translation: np.ndarray
+    scale: float
+    source: str
+    score: float
+
+
+def detection_boxes(views, crop_margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """Detection boxes (V, 4) (u0, v0, u1, v1, pixels) recovered from the views' crops, and (V, 4) bool:
+    that side touches the image border (the detection may be truncated there).
+
+    `sparse.view_from_mask` grows the mask's box by crop_margin * size + 2 pixels per side.
+    """
+    crop = np.array([v.crop for v in views], dtype=np.float64)
+    size = (crop[:, 2:] - crop[:, :2] - 4.0) / (1.0 + 2.0 * crop_margin)
+    lo = crop[:, :2] + crop_margin * size + 2.0
+    boxes = np.concatenate([lo, lo + size], 1)
+    wh = np.array([v.image_size for v in views], dtype=np.float64)
+    border = np.stack([boxes[:, 0] <= 1, boxes[:, 1] <= 1, boxes[:, 2] >= wh[:, 0] - 1, boxes[:, 3] >= wh[:, 1] - 1], 1)
+    return boxes, border
+
+
+def ray_centre(views, boxes: np.ndarray, border: np.ndarray, huber: float = 0.1) -> np.ndarray | None:
+    """Least-squares intersection (3,) of the rays through the detection boxes' centres, or None.
+
+    Views with a truncated detection are left out when at least two others remain; three Huber-reweighted
+    passes (threshold `huber` metres of point-to-ray distance) limit the pull of occluded or mis-associated
+    views. None when the rays do not fix a point (fewer than two, or nearly parallel).
+    """
+    keep = ~border.any(1)
+    if keep.sum() < 2:
+        keep = np.ones(len(views), bool)
+    origins, dirs = [], []
+    for v, b, k in zip(views, boxes, keep):
+        if not k:
+            continue
+        d_cam = np.array([((b[0] + b[2]) / 2 - v.K[0, 2]) / v.K[0, 0], ((b[1] + b[3]) / 2 - v.K[1, 2]) / v.K[1, 1], 1.0])
+        d = v.T_world_camera[:3, :3] @ d_cam
+        origins.append(v.T_world_camera[:3, 3])
+        dirs.append(d / np.linalg.norm(d))
+    if len(origins) < 2:
+        return None
+    o, d = np.array(origins), np.array(dirs)
+    proj = np.eye(3)[None] - d[:, :, None] * d[:, None, :]                      # (N, 3, 3) orthogonal to each ray
+    w = np.ones(len(o))
+    centre = None
+    for _ in range(3):
+        A = np.einsum('n,nij->ij', w, proj)
+        if np.linalg.eigvalsh(A)[0] < 1e-3 * w.sum():                           # rays (nearly) parallel
+            return None
+        centre = np.linalg.solve(A, np.einsum('n,nij,nj->i', w, proj, o))
+        dist = np.linalg.norm(np.einsum('nij,nj->ni', proj, centre - o), axis=1)
+        w = np.where(dist <= huber, 1.0, huber / np.maximum(dist, 1e-9))
+    in_front = np.einsum('ni,ni->n', centre - o, d) > 0.1
+    return centre if in_front.mean() > 0.5 else None
+
+
+def _rotations(yaws: torch.Tensor) -> torch.Tensor:
+    """(Y,) -> (Y, 3, 3) rotations about z."""
+    c, s = torch.cos(yaws), torch.sin(yaws)
+    zero, one = torch.zeros_like(c), torch.ones_like(c)
+    return torch.stack([c, -s, zero, s, c, zero, zero, zero, one], 1).reshape(-1, 3, 3)
+
+
+def _projected_boxes(batch, world: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """World points (H, P, 3) -> their 2D boxes (H, V, 4) in every view and the pixels (V, H, P, 2)."""
+    n_h, n_p = world.shape[:2]
+    uv, _ = batch.project(world.reshape(-1, 3))                                 # (V, H*P, 2)
+    uv = uv.reshape(uv.shape[0], n_h, n_p, 2)
+    boxes = torch.cat([uv.amin(2), uv.amax(2)], -1).permute(1, 0, 2)             # (H, V, 4)
+    return boxes, uv
+
+
+def search(points_norm: np.ndarray, box, views, batch, slam_points: np.ndarray | None, yaws: np.ndarray, *,
+           crop_margin: float, w_silhouette: float, w_geometry: float, truncation: float = 0.3, keep: int = 6,
+           starts: int = 16, steps: int = 25, point_samples: int = 128, landmark_samples: int = 128,
+           seed: int = 0) -> list[Hypothesis]:
+    """Placement hypotheses of one object, best first (at most `keep`; empty when nothing scores finite).
+
+    Every (centre, scale, yaw) of the grid in the module docstring is scored at once; the `starts` best
+    (at most two yaws per centre and scale) then descend `steps` Adam steps in centre and log-scale on the
+    same score (batched; yaw fixed), which turns the grid's coarse centres and scales into silhouette- and
+    landmark-consistent ones; the results are scored again, near-duplicates dropped.
+
+    points_norm (P, 3): the decoded shape (normalised frame); box (centre, size, yaw): the input box;
+    views: the sparse stage's `View`s and batch: their `sparse._Batch`; slam_points (N, 3) world landmarks or
+    None; yaws (Y,): yaw candidates.
+    """
+    rng = np.random.default_rng(seed)
+    pts = np.asarray(points_norm, dtype=np.float64)
+    if len(pts) > point_samples:
+        pts = pts[rng.choice(len(pts), point_samples, replace=False)]
+    lo, hi = pts.min(0), pts.max(0)
+    mid, extent = (lo + hi) / 2, np.maximum(hi - lo, 1e-6)
+    centre_b, size_b = np.asarray(box[0], dtype=np.float64), np.asarray(box[1], dtype=np.float64)
+    scale_b = float(size_b[2] / extent[2])
+    boxes_obs, border = detection_boxes(views, crop_margin)
+
+    centres, names = [centre_b], ['input box']
+    ray = ray_centre(views, boxes_obs, border)
+    if ray is not None and np.linalg.norm(ray - centre_b) < 3.0 * max(float(size_b.max()), 0.5):
+        cams = np.array([v.T_world_camera[:3, 3] for v in views])
+        look = (ray - cams).mean(0)
+        look[2] = 0.0
+        centres.append(ray)
+        names.append('ray centre')
+        if np.linalg.norm(look) > 1e-6:
+            look /= np.linalg.norm(look)
+            for off in DEPTH_OFFSETS:
+                centres.append(ray + off * look)
+                names.append(f'ray centre {100 * off:+.0f} cm')
+    C, Y = len(centres), len(yaws)
+    centres_t = torch.as_tensor(np.array(centres), dtype=torch.float32)                        # (C, 3)
+    local = torch.as_tensor(pts - mid, dtype=torch.float32)                                    # (P, 3)
+    rot = _rotations(torch.as_tensor(np.asarray(yaws, dtype=np.float64), dtype=torch.float32))  # (Y, 3, 3)
+    shape_y = torch.einsum('yij,pj->ypi', rot, local)                                          # (Y, P, 3)
+
+    obs = torch.as_tensor(boxes_obs, dtype=torch.float32)                                      # (V, 4)
+    diag = batch.diag[:, 0]                                                                    # (V,)
+    side_ok = torch.as_tensor(~border, dtype=torch.float32)                                    # (V, 4)
+    obs_diag = torch.linalg.norm(obs[:, 2:] - obs[:, :2], dim=1)
+    whole = torch.as_tensor(~border.any(1))
+    if int(whole.sum()) < 2:
+        whole = torch.ones_like(whole)
+
+    with torch.no_grad():   # silhouette scale per (centre, yaw): observed / predicted box diagonal, twice
+        s_sil = torch.full((C, Y), scale_b)
+        for _ in range(2):
+            world = s_sil[..., None, None] * shape_y[None] + centres_t[:, None, None]          # (C, Y, P, 3)
+            pred, _ = _projected_boxes(batch, world.reshape(C * Y, -1, 3))
+            pred_diag = torch.linalg.norm(pred[..., 2:] - pred[..., :2], dim=-1).clamp_min(1.0)
+            ratio = (obs_diag[None] / pred_diag)[:, whole].median(1).values.reshape(C, Y)
+            s_sil = (s_sil * ratio).clamp(scale_b * SCALE_RANGE[0], scale_b * SCALE_RANGE[1])
+    scales = torch.cat([s_sil[..., None] * torch.tensor(SCALE_FACTORS), torch.full((C, Y, 1), scale_b)], -1)
+    S = scales.shape[-1]
+
+    marks_t = None
+    if w_geometry > 0 and slam_points is not None and len(slam_points):
+        # the floor (landmarks below it are not the object's): the ray-centre hypothesis' bottom at its
+        # silhouette scale, else the input box's bottom
+        row = 1 if ray is not None else 0
+        bottom = centres[row][2] - (float(s_sil[row].median()) if row else scale_b) * extent[2] / 2
+        marks = _landmarks(slam_points, centres, float(scales.max()) * extent / 2, bottom + 0.02, rng,
+                           landmark_samples)
+        marks_t = torch.as_tensor(marks, dtype=torch.float32) if len(marks) >= 5 else None
+
+    def score(centre: torch.Tensor, log_s: torch.Tensor, yaw_idx: torch.Tensor) -> torch.Tensor:
+        """Hypotheses (H, 3), (H,), (H,) long -> score (H,) (differentiable in centre and log_s)."""
+        world = log_s.exp()[:, None, None] * shape_y[yaw_idx] + centre[:, None]                # (H, P, 3)
+        pred, uv = _projected_boxes(batch, world)
+        flat = uv.flatten(1, 2)                                                                 # (V, H*P, 2)
+        # E_out: points outside the mask (distance-transform lookup + distance outside the crop), as in Es
+        g = (flat - batch.crop_lo) / (batch.crop_hi - batch.crop_lo) * 2 - 1
+        inner = F.grid_sample(batch.dt, g[:, None], mode='bilinear', padding_mode='border', align_corners=False)[:, 0, 0]
+        out = torch.maximum(batch.crop_lo - flat, flat - batch.crop_hi).clamp_min(0)
+        d_out = inner + (out.square().sum(-1) + 1e-6).sqrt() / batch.diag                       # (V, H*P)
+        e_out = d_out.reshape(len(views), len(centre), -1).mean(2).mean(0)                      # (H,)
+        # E_box: sides of the projected box vs the detection's, box diagonals, truncated at 0.3 (a side cut
+        # by an occluder must not dominate), sides on the image border skipped
+        side = ((pred - obs[None]).abs() / diag[None, :, None]).clamp(max=0.3) * side_ok[None]
+        e_box = (side.sum(2) / side_ok.sum(1).clamp_min(1.0)[None]).mean(1)                    # (H,)
+        total = w_silhouette * (e_out + e_box)
+        if marks_t is not None:
+            with torch.no_grad():   # nearest neighbours without gradient, their distances with (cheap backward)
+                nearest = torch.cdist(marks_t[None].expand(len(world), -1, -1), world).argmin(2)   # (H, L)
+            matched = torch.gather(world, 1, nearest[..., None].expand(-1, -1, 3))
+            d = ((marks_t[None] - matched).square().sum(-1) + 1e-9).sqrt()                     # (H, L)
+            total = total + w_geometry * d.clamp(max=truncation).mean(1) / truncation
+        return total
+
+    # grid: every (centre, scale, yaw), in chunks
+    c_idx, s_idx, y_idx = torch.meshgrid(torch.arange(C), torch.arange(S), torch.arange(Y), indexing='ij')
+    c_idx, s_idx, y_idx = c_idx.flatten(), s_idx.flatten(), y_idx.flatten()
+    grid_log_s = scales[c_idx, y_idx, s_idx].log()
+    with torch.no_grad():
+        grid = torch.cat([score(centres_t[c], ls, y) for c, ls, y in
+                          zip(c_idx.split(128), grid_log_s.split(128), y_idx.split(128))])
+    picked, per_pair = [], {}
+    for h in torch.argsort(grid).tolist():
+        pair = (int(c_idx[h]), int(s_idx[h]))
+        if torch.isfinite(grid[h]) and per_pair.get(pair, 0) < 2:
+            per_pair[pair] = per_pair.get(pair, 0) + 1
+            picked.append(h)
+            if len(picked) >= starts:
+                break
+    if not picked:
+        return []
+    picked_t = torch.tensor(picked)
+    centre = centres_t[c_idx[picked_t]].clone().requires_grad_(True)
+    log_s = grid_log_s[picked_t].clone().requires_grad_(True)
+    yaw_idx = y_idx[picked_t]
+    opt = torch.optim.Adam([{'params': [centre], 'lr': 0.02}, {'params': [log_s], 'lr': 0.03}])
+    for _ in range(steps):
+        opt.zero_grad(set_to_none=True)
+        score(centre, log_s, yaw_idx).sum().backward()
+        opt.step()
+    with torch.no_grad():
+        final = score(centre, log_s, yaw_idx)
+    chosen: list[Hypothesis] = []
+    for k in torch.argsort(final).tolist():
+        value = float(final[k])
+        c, sc, y = centre[k].detach().double().numpy(), math.exp(float(log_s[k].detach())), int(yaw_idx[k])
+        if not math.isfinite(value) or any(h.yaw == float(yaws[y]) and abs(math.log(h.scale / sc)) < 0.03 and
+                                           np.linalg.norm(h.translation + h.scale * _yaw(h.yaw) @ mid - c) < 0.03
+                                           for h in chosen):
+            continue
+        h = picked[k]
+        kind = 'box scale' if int(s_idx[h]) == S - 1 else f'silhouette scale x{SCALE_FACTORS[int(s_idx[h])]:.2f}'
+        chosen.append(Hypothesis(float(yaws[y]), c - sc * _yaw(float(yaws[y])) @ mid, sc,
+                                 f'{names[int(c_idx[h])]}, {kind}, descended', value))
+        if len(chosen) >= keep:
+            break
+    return chosen
+
+
+def _yaw(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def placed_box(points_norm: np.ndarray, yaw: float, translation, scale: float):
+    """Upright world box (centre (3,), size (3,), yaw) of the shape points (P, 3) under a placement."""
+    lo, hi = np.min(points_norm, 0), np.max(points_norm, 0)
+    return np.asarray(translation, dtype=np.float64) + scale * _yaw(yaw) @ ((lo + hi) / 2), scale * (hi - lo), float(yaw)
+
+
+def _landmarks(slam_points: np.ndarray, centres: list[np.ndarray], half_extent: np.ndarray, floor: float,
+               rng: np.random.Generator, limit: int) -> np.ndarray:
+    """Landmarks (N, 3) that any hypothesis can reach: within the largest hypothesis' half-extent (plus the
+    0.3 m truncation) of a hypothesis centre and above `floor`; at most `limit`, drawn at random."""
+    p = np.asarray(slam_points, dtype=np.float64)
+    p = p[np.isfinite(p).all(1)]
+    radius = float(np.linalg.norm(half_extent[:2])) + 0.3
+    near = np.zeros(len(p), bool)
+    for c in centres:
+        near |= (np.linalg.norm(p[:, :2] - c[:2], axis=1) < radius) & (np.abs(p[:, 2] - c[2]) < half_extent[2] + 0.3)
+    p = p[near & (p[:, 2] > floor)]
+    if len(p) > limit:
+        p = p[rng.choice(len(p), limit, replace=False)]
+    return p.astype(np.float32)

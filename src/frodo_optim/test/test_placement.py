@@ -1,0 +1,117 @@
+"""Placement hypotheses (frodo_optim.placement): the sparse stage recovers a held-out object from a box 30 cm off
+and half / twice its size, and never returns a placement with a higher energy than its input box."""
+import math
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from frodo_common.geometry import look_at
+from frodo_datasets.render import Material, Renderer, RenderObject, intrinsics
+from frodo_datasets.shapes.library import eval_families, generate
+from frodo_optim import placement
+from frodo_optim.sparse import DT_MARGIN, SparseConfig, box_init, pose_matrix, refine, view_from_mask
+from frodo_shape.crops import square_crop
+from frodo_shape.prior import ShapePrior
+
+W, H = 240, 180
+
+
+@pytest.fixture(scope='module')
+def prior():
+    torch.manual_seed(0)
+    return ShapePrior.load('furniture', device='cpu')
+
+
+@pytest.fixture(scope='module')
+def scene(prior):
+    """A chair of a held-out family (never in the prior's training set) on the floor, 12 views on a
+    100-degree arc, its encoder code (mean of 3 crops), landmarks on it, on a neighbour and on the floor."""
+    rng = np.random.default_rng(7)
+    mesh = generate('chair', 7, eval_families('chair')[0])
+    yaw, centre = 0.9, np.array([0.6, -0.4, -mesh.bounds[0, 2]])
+    T = np.eye(4)
+    T[:3, :3] = trimesh.transformations.rotation_matrix(yaw, [0, 0, 1])[:3, :3]
+    T[:3, 3] = centre
+    world = mesh.copy().apply_transform(T)
+    renderer = Renderer([RenderObject(world, Material.random(rng), label=1)])
+    K = intrinsics(W, H, 60.0)
+    target = world.bounds.mean(0)
+    views, crops, masks = [], [], []
+    for k in range(12):
+        a = 0.3 + math.radians(100) * k / 11
+        eye = target + np.array([2.4 * math.cos(a), 2.4 * math.sin(a), 0.0])
+        eye[2] = 1.45
+        out = renderer.render(K, look_at(eye, target), W, H, shadows=False)
+        mask = out.labels == 1
+        views.append(view_from_mask(K, look_at(eye, target), mask, 96, rng=rng))
+        if k % 4 == 0:
+            ys, xs = np.nonzero(mask)
+            c, m = square_crop(out.rgb, mask, (xs.min(), ys.min(), xs.max() + 1, ys.max() + 1), 128, 0.1)
+            crops.append(c)
+            masks.append(m)
+    code = prior.encode(np.stack(crops), np.stack(masks)).mean(0)
+    neighbour = generate('dining table', 3).apply_translation([centre[0] + 1.1, centre[1], 0.4])
+    slam = np.concatenate([trimesh.sample.sample_surface(world, 200, seed=1)[0],
+                           trimesh.sample.sample_surface(neighbour, 100, seed=2)[0],
+                           np.c_[rng.uniform(-2, 2, (100, 2)), np.zeros(100)]]) + rng.normal(0, 0.01, (400, 3))
+    lo, hi = mesh.bounds
+    return {'code': code, 'views': views, 'slam': slam, 'box': (target, hi - lo, yaw), 'world': world}
+
+
+def _placed(prior, result):
+    pts = prior.decode_points(result.code)[0].detach().numpy().astype(np.float64)
+    return pts @ result.T_world_object[:3, :3].T + result.T_world_object[:3, 3]
+
+
+def _errors(prior, result, scene):
+    placed = _placed(prior, result)
+    lo, hi = scene['world'].bounds
+    centre = np.linalg.norm((placed.min(0) + placed.max(0)) / 2 - (lo + hi) / 2)
+    return centre, (placed.max(0) - placed.min(0))[2] / (hi - lo)[2]
+
+
+def test_detection_boxes_and_ray_centre(scene):
+    views = scene['views']
+    boxes, border = placement.detection_boxes(views, DT_MARGIN)
+    for v, b in zip(views, boxes):   # the mask samples lie inside the recovered box (+1 px of jitter)
+        assert (v.mask_uv >= b[:2] - 1e-3).all() and (v.mask_uv <= b[2:] + 1).all()
+        assert b[2] - v.mask_uv[:, 0].max() < 0.15 * (b[2] - b[0]) + 2
+    assert not border.any()
+    centre = placement.ray_centre(views, boxes, border)
+    assert np.linalg.norm(centre - scene['box'][0]) < 0.1, centre - scene['box'][0]
+    parallel = [views[0]] * 3     # one ray three times: no intersection
+    assert placement.ray_centre(parallel, boxes[:1].repeat(3, 0), border[:1].repeat(3, 0)) is None
+
+
+@pytest.mark.parametrize('shift, factor', [(0.3, 2.0), (0.3, 0.5)])
+def test_recovers_a_box_30cm_off_and_twice_or_half_the_size(prior, scene, shift, factor):
+    centre, size, yaw = scene['box']
+    wrong = (centre + shift * np.array([math.cos(2.0), math.sin(2.0), 0.0]), size * factor, yaw)
+    res = refine(prior, scene['code'], wrong, scene['views'], scene['slam'], SparseConfig(seed=0))
+    assert res.ok and res.placement != 'input box', (res.placement, res.reason)
+    centre_err, scale = _errors(prior, res, scene)
+    assert centre_err < 0.06 and abs(scale - 1) < 0.2, (centre_err, scale, res.placement)
+    # the box-only initialisation (the previous behaviour) does not recover: the placement search is what does
+    old = refine(prior, scene['code'], wrong, scene['views'], scene['slam'], SparseConfig(seed=0, placement_search=False))
+    old_err, old_scale = _errors(prior, old, scene)
+    assert old_err > 0.1 or abs(old_scale - 1) > 0.3, (old_err, old_scale)
+    assert res.energies['total'] < old.energies['total']
+
+
+def test_never_worse_than_the_input_placement(prior, scene):
+    centre, size, yaw = scene['box']
+    wrong = (centre + np.array([0.2, 0.1, 0.0]), size * 1.5, yaw)
+    # nothing to search and no iterations: the input box placement comes back, with the reason
+    res = refine(prior, scene['code'], wrong, scene['views'], scene['slam'],
+                 SparseConfig(iterations=0, yaw_candidates=4, placement_search=False))
+    assert res.ok and 'input placement kept' in res.reason, res.reason
+    t, s = box_init(prior.decode_points(scene['code'])[0].detach().numpy().astype(np.float64), wrong[0], wrong[1], res.yaw)
+    assert np.allclose(res.T_world_object, pose_matrix(res.yaw, t, s), atol=1e-5)
+    assert min(abs(math.remainder(res.yaw - yaw - k * math.pi / 2, 2 * math.pi)) for k in range(4)) < 1e-6
+    # a diverging optimisation from wrong hypotheses still ends at or below the input's energy
+    wild = SparseConfig(iterations=6, lr_translation=3.0, lr_yaw=2.0, lr_log_scale=2.0, lr_code=3.0)
+    res = refine(prior, scene['code'], wrong, scene['views'], scene['slam'], wild)
+    assert res.energies['total'] <= res.input_energy + 1e-6
+    assert np.isfinite(res.T_world_object).all()
