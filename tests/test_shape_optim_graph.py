@@ -2,7 +2,8 @@
 
 Frames of the demo bag (image, instance labels, camera pose and intrinsics) and one object's association rows
 and box go in; per-frame codes, fused object codes, a placed mesh on /frodo/objects, /frodo/boxes and
-/frodo/object_states come out (first the fused placement, then the sparse stage's refinement, paper Sec. 4.3),
+/frodo/object_states come out (first the fused placement, then the sparse and the dense stages' refinements,
+paper Sec. 4.3),
 and the mesh scores well against the bag's ground truth (CONTRACT.md protocol). Bad input (detections of
 another size than the image, a box with NaN) is reported on /diagnostics and survived.
 """
@@ -27,7 +28,7 @@ from frodo_common.testing import spin_until as spin
 from frodo_common.bag import BagReader
 from frodo_common.evaluation import EvalObject, evaluate, load_ground_truth_bag
 from frodo_optim.optim_node import OptimNode
-from frodo_optim.states import OBJECT_STATES, STAGES
+from frodo_optim.states import OBJECT_STATES, STAGE_REASONS, STAGES
 from frodo_shape.shape_node import ShapeNode
 
 BAG = Path(__file__).resolve().parents[1] / 'bags' / 'demo_walk.mcap'
@@ -124,7 +125,7 @@ def test_shape_and_optimiser_nodes_reconstruct_an_object_from_the_demo_bag():
         tracks_pub.publish(MarkerArray(markers=[nan_box, good_box]))
         assert spin_until(lambda: objects and any(m.id == OBJECT_ID for m in objects[-1].markers)
                           and status('optim_node').get('state') == 'idle'
-                          and status('optim_node').get('sparse_objects') == '1', timeout=90.0), status('optim_node')
+                          and status('optim_node').get('dense_objects') == '1', timeout=120.0), status('optim_node')
         assert int(status('optim_node')['errors']) >= 1       # the NaN box
         mesh_marker = next(m for m in objects[-1].markers if m.id == OBJECT_ID)
         assert mesh_marker.type == Marker.TRIANGLE_LIST and mesh_marker.header.frame_id == 'world'
@@ -132,9 +133,11 @@ def test_shape_and_optimiser_nodes_reconstruct_an_object_from_the_demo_bag():
         assert len(faces) > 500 and np.isfinite(vertices).all()
         assert [m.id for m in boxes[-1].markers if m.action == Marker.ADD] == [OBJECT_ID]
         state = conv.cloud_to_table(states[-1])
-        assert list(state['object_id']) == [OBJECT_ID] and STAGES[state['stage'][0]] == 'sparse'
+        assert list(state['object_id']) == [OBJECT_ID] and STAGES[state['stage'][0]] == 'dense'
+        assert STAGE_REASONS[state['stage_reason'][0]] == 'all stages done'
         stages = [STAGES[t['stage'][0]] for t in map(conv.cloud_to_table, states) if len(t)]
-        assert stages.index('fused') < stages.index('sparse')        # the fused placement is published first
+        # each stage is published as it completes: fused, then sparse, then dense
+        assert stages.index('fused') < stages.index('sparse') < stages.index('dense')
         assert int(status('optim_node')['views_held']) >= 4
 
         import trimesh

@@ -23,6 +23,7 @@ class ObjectEstimate:
 
     T_world_object: (4, 4) similarity, x_world = scale * R @ x_normalised + t.
     box: (centre (3,), size (3,), yaw) of the mesh's upright box in the world.
+    stage: 'fused' | 'sparse' | 'dense' (states.STAGES); stage_reason: index into states.STAGE_REASONS.
     """
 
     object_id: int
@@ -36,6 +37,7 @@ class ObjectEstimate:
     stage: str
     mesh_world: trimesh.Trimesh
     timings: dict[str, float] = field(default_factory=dict)
+    stage_reason: int = 0           # index into states.STAGE_REASONS: why the object ends at `stage`
 
 
 def place_from_box(mesh_normalised: trimesh.Trimesh, center, size, yaw: float):

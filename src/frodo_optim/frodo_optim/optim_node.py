@@ -1,12 +1,14 @@
 """Optimiser node: turns tracks (3D boxes) and fused shape codes into placed object meshes, asynchronously
 (paper Sec. 4.3). Stage 'fused': decode + box-fit placement (frodo_optim.core); stage 'sparse': yaw search
 and joint code/pose optimisation against the object's masks and SLAM points (frodo_optim.sparse), published
-after the fused result of the same pass.
+after the fused result of the same pass; stage 'dense': code + 7-DoF pose on the SDF decoder against masks,
+colours, landmarks and (optional) depth (frodo_optim.dense), published after the sparse result.
 
-In:  /frodo/tracks (latched MarkerArray of boxes), /frodo/object_codes (latched table); for the sparse stage
-     /frodo/detections (16UC1), /frodo/associations (table), /camera/pose, /camera/color/camera_info (stamp
-     matched by FrameCache; each detection's mask is reduced to a compact `sparse.View` and the frame
-     freed), /slam/points (latest map).
+In:  /frodo/tracks (latched MarkerArray of boxes), /frodo/object_codes (latched table); for the sparse and
+     dense stages /frodo/detections (16UC1), /frodo/associations (table), /camera/pose, /camera/color/image_raw
+     (dense/photometric only), /camera/color/camera_info (stamp matched by FrameCache; each detection is
+     reduced to a compact `sparse.View` and `photometric.DenseView` and the frame freed), /slam/points (latest
+     map), /camera/depth/image_raw (optional, contract v1.1: cached by stamp, used when present).
 Out: /frodo/objects (contract: TRIANGLE_LIST per object, world vertices), /frodo/boxes (contract: CUBE per
      object), /frodo/object_states (latched table for the command line's objects.json), /diagnostics with
      state idle|busy and pending_objects.
@@ -15,6 +17,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import OrderedDict
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -28,8 +31,10 @@ from frodo_common.node import ERROR, OK, WARN, FrodoNode, run_node
 from frodo_common.frame_cache import FrameCache
 from frodo_common.params import ParamSpec
 from frodo_optim.core import ObjectEstimate, fused_estimate, world_box
+from frodo_optim.dense import DenseConfig, refine_dense
+from frodo_optim.photometric import dense_view_from_frame
 from frodo_optim.sparse import SparseConfig, ViewStore, refine, view_from_mask
-from frodo_optim.states import OBJECT_STATES, STAGES, STATES_DTYPE
+from frodo_optim.states import OBJECT_STATES, STAGE_REASONS, STAGES, STATES_DTYPE
 from frodo_shape.prior import ShapePrior
 
 PARAMS = (
@@ -53,6 +58,26 @@ PARAMS = (
     ParamSpec('sparse_w_code', 0.01, 'Weight of the code regulariser Er (squared code z-score w.r.t. training codes).'),
     ParamSpec('sparse_optimise_code', True, 'Optimise the shape code too (false: pose only).'),
     ParamSpec('sparse_lr_code', 0.005, 'Adam step size of the shape code in the sparse stage.'),
+    ParamSpec('dense_enabled', True, 'Run the dense stage (Sec. 4.3 Dense Optimization: SDF decoder, code + 7-DoF '
+              'pose) after a successful sparse stage.'),
+    ParamSpec('dense_iterations', 20, 'Adam iterations of the dense stage per object and pass.'),
+    ParamSpec('dense_max_seconds', 30.0, 'Wall-clock bound of the dense stage per object (best state kept).'),
+    ParamSpec('dense_views', 16, 'Views (spread evenly over the kept ones) used by the dense stage.'),
+    ParamSpec('dense_grid_resolution', 32, 'Resolution of the adaptive SDF volume / proxy mesh per iteration.'),
+    ParamSpec('dense_rays_per_view', 192, 'Pixels (rays) per view and pyramid level of the dense silhouette.'),
+    ParamSpec('dense_surface_points', 1024, 'Proxy-mesh vertices used by the dense photometric term.'),
+    ParamSpec('dense_sharpness', 100.0, 'zeta: SDF-to-logit scale of the ray-accumulated silhouette (per normalised unit).'),
+    ParamSpec('dense_crop_size', 96, 'Side of the stored label/colour crop per detection (bounded memory).'),
+    ParamSpec('dense_w_silhouette', 1.0, 'Weight of the dense silhouette energy (Eq. 8/9).'),
+    ParamSpec('dense_w_photometric', 0.5, 'Weight of the dense photometric energy (Eq. 5 on the proxy surface).'),
+    ParamSpec('dense_w_geometry', 0.5, 'Weight of the landmark term (|SDF| at SLAM points, truncated).'),
+    ParamSpec('dense_w_depth', 0.5, 'Weight of the registered-depth term (|SDF| at masked depth pixels), when depth is present.'),
+    ParamSpec('dense_w_code', 0.01, 'Weight of the code regulariser in the dense stage.'),
+    ParamSpec('dense_lr_code', 0.005, 'Adam step size of the shape code in the dense stage.'),
+    ParamSpec('dense_rerun_growth', 1.25, 'While other objects wait, re-run an object\'s dense stage only when its '
+              'views grew by this factor; the rest are caught up when the queue is empty.'),
+    ParamSpec('image_topic', topics.IMAGE, 'Colour image topic (dense stage and photometric terms).'),
+    ParamSpec('depth_topic', '/camera/depth/image_raw', "Optional registered depth (16UC1 mm or 32FC1 m); '' disables."),
     ParamSpec('camera_info_topic', topics.CAMERA_INFO, 'Camera intrinsics topic.'),
     ParamSpec('pose_topic', topics.POSE, 'Camera pose topic (T_world_camera, optical frame).'),
     ParamSpec('slam_points_topic', topics.SLAM_POINTS, 'SLAM landmarks topic (whole map per message).'),
@@ -73,13 +98,21 @@ class OptimNode(FrodoNode):
         self.mesh_cache: dict[int, tuple[np.ndarray, object]] = {}  # id -> (code, normalised mesh)
         self.published_ids: set[tuple[str, int]] = set()
         self.pending: set[int] = set()
-        self.busy = False
+        self.busy: int | None = None                                # id of the object being reconstructed
         self.cond = threading.Condition()
         self.stopping = False
         self.view_store = ViewStore(int(self.params['sparse_views_stored']))
+        self.dense_store = ViewStore(int(self.params['sparse_views_stored']), capacity=1000)  # same keys
         self.slam_points: np.ndarray | None = None
         self.sparse_info: dict[int, str] = {}                       # id -> last sparse outcome
-        self.frames = FrameCache(('detections', 'associations', 'pose'), int(self.params['frame_cache_size']))
+        self.dense_info: dict[int, str] = {}                        # id -> last dense outcome
+        self.dense_views_used: dict[int, int] = {}                  # id -> associated views at its last dense run
+        self.dense_stale: set[int] = set()                          # dense deferred; run when the queue empties
+        self.force_dense: set[int] = set()
+        self.dense_on = bool(self.params['sparse_enabled'] and self.params['dense_enabled'])
+        self.depth_cache: OrderedDict[int, np.ndarray] = OrderedDict()
+        parts = ('detections', 'associations', 'pose') + (('image',) if self.dense_on else ())
+        self.frames = FrameCache(parts, int(self.params['frame_cache_size']))
         self.rng = np.random.default_rng(0)
         self.objects_pub = self.create_publisher(MarkerArray, topics.OBJECTS, topics.LATCHED_QOS)
         self.boxes_pub = self.create_publisher(MarkerArray, topics.BOXES, topics.LATCHED_QOS)
@@ -94,6 +127,13 @@ class OptimNode(FrodoNode):
                                           (PoseStamped, self.params['pose_topic'], 'pose')):
                 self.create_subscription(msg_type, topic, self.guarded(lambda m, p=part: self._on_frame_part(m, p), part),
                                          topics.FRAME_QOS)
+            if self.dense_on:
+                self.create_subscription(Image, self.params['image_topic'],
+                                         self.guarded(lambda m: self._on_frame_part(m, 'image'), 'image'),
+                                         topics.FRAME_QOS)
+                if self.params['depth_topic']:
+                    self.create_subscription(Image, self.params['depth_topic'], self.guarded(self._on_depth, 'depth'),
+                                             topics.FRAME_QOS)
             self.create_subscription(CameraInfo, self.params['camera_info_topic'],
                                      self.guarded(self._on_camera_info, 'camera_info'), topics.FRAME_QOS)
             self.create_subscription(PointCloud2, self.params['slam_points_topic'],
@@ -147,6 +187,19 @@ class OptimNode(FrodoNode):
             for frame in self.frames.complete_frames():
                 self._views_of_frame(frame)
 
+    def _on_depth(self, msg: Image) -> None:
+        """Registered depth, kept by stamp (bounded) until its frame's views are extracted."""
+        self.count('depth_received')
+        if msg.encoding not in ('16UC1', '32FC1'):
+            raise conv.ConversionError(f'depth encoding must be 16UC1 (mm) or 32FC1 (m), got {msg.encoding!r}')
+        depth = conv.image_to_numpy(msg).astype(np.float32)
+        if msg.encoding == '16UC1':
+            depth *= 0.001
+        with self.cond:
+            self.depth_cache[conv.stamp_to_ns(msg.header.stamp)] = depth
+            while len(self.depth_cache) > 64:
+                self.depth_cache.popitem(last=False)
+
     def _on_slam_points(self, msg: PointCloud2) -> None:
         points = conv.cloud_to_xyz(msg)
         with self.cond:
@@ -160,6 +213,7 @@ class OptimNode(FrodoNode):
             owners = {int(r['label']): (int(r['object_id']), bool(r['kept'])) for r in rows}
             with self.cond:
                 self.view_store.assign(stamp, owners)
+                self.dense_store.assign(stamp, owners)
             return
         frame = self.frames.add(stamp, part, msg)
         if frame is not None:
@@ -189,14 +243,32 @@ class OptimNode(FrodoNode):
             raise conv.ConversionError('non-finite camera pose')
         rows = conv.cloud_to_table(frame.parts['associations'])
         detected = labels > 0
+        rgb = depth = None
+        if self.dense_on:
+            rgb = conv.image_to_rgb(frame.parts['image'])
+            if rgb.shape[:2] != (height, width):
+                raise conv.ConversionError(f'image {rgb.shape[1]}x{rgb.shape[0]} does not match camera_info {width}x{height}')
+            with self.cond:
+                depth = self.depth_cache.pop(frame.stamp_ns, None)
+            if depth is not None and depth.shape != (height, width):
+                self.report_error('depth', f'depth {depth.shape[1]}x{depth.shape[0]} is not registered to the '
+                                           f'{width}x{height} colour image; ignored', counter='warnings')
+                depth = None
         for r in rows:   # all rows: ids of past frames are assigned or changed later by re-sends
             mask = labels == r['label']
             view = view_from_mask(K, T, mask, int(self.params['sparse_mask_samples']), detected & ~mask, self.rng)
             if view is None:
                 self.count('views_rejected')
                 continue
+            key = (frame.stamp_ns, int(r['label']), int(r['object_id']), bool(r['kept']))
+            dense_view = None
+            if self.dense_on:
+                dense_view = dense_view_from_frame(K, T, mask, detected & ~mask, rgb, depth,
+                                                   size=int(self.params['dense_crop_size']), rng=self.rng)
             with self.cond:
-                self.view_store.add(frame.stamp_ns, int(r['label']), int(r['object_id']), bool(r['kept']), view)
+                self.view_store.add(*key, view)
+                if dense_view is not None:
+                    self.dense_store.add(*key, dense_view)
             self.count('views_stored')
 
     def sparse_config(self) -> SparseConfig:
@@ -207,17 +279,32 @@ class OptimNode(FrodoNode):
                             w_geometry=float(p['sparse_w_geometry']), w_code=float(p['sparse_w_code']),
                             optimise_code=bool(p['sparse_optimise_code']), lr_code=float(p['sparse_lr_code']))
 
+    def dense_config(self) -> DenseConfig:
+        p = self.params
+        return DenseConfig(iterations=int(p['dense_iterations']), max_views=int(p['dense_views']),
+                           max_seconds=float(p['dense_max_seconds']), grid_resolution=int(p['dense_grid_resolution']),
+                           rays_per_view=int(p['dense_rays_per_view']), surface_points=int(p['dense_surface_points']),
+                           sharpness=float(p['dense_sharpness']), w_silhouette=float(p['dense_w_silhouette']),
+                           w_photometric=float(p['dense_w_photometric']), w_geometry=float(p['dense_w_geometry']),
+                           w_depth=float(p['dense_w_depth']), w_code=float(p['dense_w_code']),
+                           lr_code=float(p['dense_lr_code']))
+
     # ------------------------------------------------------------ worker
     def _work(self) -> None:
         while True:
             with self.cond:
                 while not self.pending and not self.stopping:
+                    if self.dense_stale:   # queue empty: catch up the dense stages deferred during bursts
+                        self.force_dense |= self.dense_stale
+                        self.pending |= self.dense_stale
+                        self.dense_stale.clear()
+                        break
                     self.cond.wait(timeout=0.5)
                 if self.stopping:
                     return
                 oid = min(self.pending)
                 self.pending.discard(oid)
-                self.busy = True
+                self.busy = oid
                 track, codes = self.tracks.get(oid), self.codes.get(oid)
             try:
                 self._reconstruct(oid, track, codes)
@@ -225,7 +312,8 @@ class OptimNode(FrodoNode):
                 self.report_error(f'object {oid}', err)
             finally:
                 with self.cond:
-                    self.busy = False
+                    self.busy = None
+                    self.force_dense.discard(oid)
 
     def _reconstruct(self, oid: int, track, codes) -> None:
         if track is None or codes is None or codes[1] < int(self.params['min_views']):
@@ -248,15 +336,30 @@ class OptimNode(FrodoNode):
         known = category_by_id(category)
         estimate = fused_estimate(oid, known.name if known else class_name, category, code, views, mesh, box)
         estimate.timings['fused_s'] = time.perf_counter() - start
+        estimate.stage_reason = STAGE_REASONS.index('in progress' if self.params['sparse_enabled']
+                                                    else 'sparse stage disabled')
         previous = self.estimates.get(oid)
         if previous is None or previous.stage == 'fused' or not self.params['sparse_enabled']:
             self.estimates[oid] = estimate        # a refined object keeps its last refinement until the next one
             self._publish()
-        if self.params['sparse_enabled']:
-            self._sparse(estimate, code, box)
+        if not self.params['sparse_enabled']:
+            return
+        sparse = self._sparse(estimate, code, box)
+        if sparse is None or not self.dense_on:
+            return
+        with self.cond:
+            due = (oid in self.force_dense or oid not in self.dense_views_used or not self.pending
+                   or views >= float(self.params['dense_rerun_growth']) * self.dense_views_used[oid])
+            if not due:
+                self.dense_stale.add(oid)
+        if due:
+            self._dense(sparse, box, views)
+        else:
+            self.count('dense_deferred')
 
-    def _sparse(self, fused: ObjectEstimate, code: np.ndarray, box) -> None:
-        """Sparse stage of one object after its fused stage; publishes the refined estimate when it succeeds."""
+    def _sparse(self, fused: ObjectEstimate, code: np.ndarray, box) -> ObjectEstimate | None:
+        """Sparse stage of one object after its fused stage; publishes and returns the refined estimate (None
+        when it fails: the fused result stays, with the reason)."""
         with self.cond:
             views = self.view_store.views_of(fused.object_id)
             slam = self.slam_points
@@ -266,25 +369,68 @@ class OptimNode(FrodoNode):
         if not result.ok:
             self.count('sparse_fallbacks')
             self.sparse_info[fused.object_id] = result.reason
+            fused.stage_reason = STAGE_REASONS.index('sparse stage failed')
             if fused.object_id not in self.estimates or self.estimates[fused.object_id].stage != 'fused':
                 self.estimates[fused.object_id] = fused
-                self._publish()
-            return
+            elif self.estimates[fused.object_id].stage == 'fused':
+                self.estimates[fused.object_id].stage_reason = fused.stage_reason
+            self._publish()
+            return None
         mesh = self.prior.mesh(result.code, resolution=int(self.params['mesh_resolution']))
         if mesh is None or len(mesh.faces) == 0:
             self.report_error(f'object {fused.object_id}', 'refined code decodes to no surface; fused result kept',
                               counter='warnings')
-            return
+            return None
         mesh_world = mesh.copy()
         mesh_world.apply_transform(result.T_world_object)
         estimate = ObjectEstimate(fused.object_id, fused.class_name, fused.category, result.code,
                                   result.T_world_object, result.scale, world_box(mesh, result.T_world_object, result.yaw),
                                   fused.num_views, 'sparse', mesh_world,
-                                  dict(fused.timings, sparse_s=time.perf_counter() - t0))
+                                  dict(fused.timings, sparse_s=time.perf_counter() - t0),
+                                  STAGE_REASONS.index('in progress' if self.dense_on else 'dense stage disabled'))
         e0, e1 = result.initial_energies.get('total', np.nan), result.energies.get('total', np.nan)
         self.sparse_info[fused.object_id] = (f'{result.views} views, {result.iterations} it, E {e0:.3f}->{e1:.3f}, '
                                              f'{result.seconds:.2f}s')
         self.estimates[fused.object_id] = estimate
+        self._publish()
+        return estimate
+
+    def _dense(self, sparse: ObjectEstimate, box, num_views: int) -> None:
+        """Dense stage after a successful sparse stage: publishes the dense estimate, or keeps the sparse one
+        (with the reason) when the dense result is not better or the stage cannot run."""
+        oid = sparse.object_id
+        with self.cond:
+            views = self.dense_store.views_of(oid)
+            slam = self.slam_points
+            self.dense_views_used[oid] = num_views
+        t0 = time.perf_counter()
+        result = refine_dense(self.prior, sparse.code, sparse.T_world_object, views, slam, box, self.dense_config())
+        self.count('dense_runs')
+        self.dense_info[oid] = (f'{result.views} views, {result.iterations} it, {result.seconds:.2f}s '
+                                f'({result.seconds_per_iteration:.2f}s/it): {result.reason}')
+        mesh = None
+        if result.improved:
+            mesh = self.prior.mesh(result.code, resolution=int(self.params['mesh_resolution']))
+        if mesh is None or len(mesh.faces) == 0:
+            if result.improved:
+                self.report_error(f'object {oid}', 'dense code decodes to no surface; sparse result kept',
+                                  counter='warnings')
+            reason = ('dense stage failed' if 'no usable views' in result.reason or 'non-finite' in result.reason
+                      or 'no surface' in result.reason else 'dense not better than sparse')
+            self.count('dense_kept_sparse')
+            if self.estimates.get(oid) is sparse:
+                sparse.stage_reason = STAGE_REASONS.index(reason)
+                sparse.timings['dense_s'] = time.perf_counter() - t0
+                self._publish()
+            return
+        mesh_world = mesh.copy()
+        mesh_world.apply_transform(result.T_world_object)
+        reason = 'dense time limit' if 'time limit' in result.reason else 'all stages done'
+        estimate = ObjectEstimate(oid, sparse.class_name, sparse.category, result.code, result.T_world_object,
+                                  result.scale, world_box(mesh, result.T_world_object, result.yaw), sparse.num_views,
+                                  'dense', mesh_world, dict(sparse.timings, dense_s=time.perf_counter() - t0),
+                                  STAGE_REASONS.index(reason))
+        self.estimates[oid] = estimate
         self._publish()
 
     # ------------------------------------------------------------ outputs
@@ -304,7 +450,7 @@ class OptimNode(FrodoNode):
             current.add((est.class_name, est.object_id))
             states[i] = (est.object_id, est.category, STAGES.index(est.stage), est.num_views, est.scale,
                          est.T_world_object.ravel(), np.r_[center, size, yaw], est.code,
-                         sum(est.timings.values()))
+                         sum(est.timings.values()), est.stage_reason)
         for ns, oid in self.published_ids - current:
             objects.markers.append(conv.delete_marker(ns, oid, now, frame))
             boxes.markers.append(conv.delete_marker(ns, oid, now, frame))
@@ -317,14 +463,20 @@ class OptimNode(FrodoNode):
     # ------------------------------------------------------------ diagnostics and shutdown
     def diagnostic_values(self) -> dict:
         with self.cond:
-            state = 'busy' if (self.busy or self.pending) else 'idle'
-            values = {'state': state, 'pending_objects': len(self.pending) + int(self.busy),
+            # distinct objects with work left: queued, deferred dense stages, and the one being reconstructed
+            waiting = self.pending | self.dense_stale | ({self.busy} if self.busy is not None else set())
+            state = 'busy' if waiting else 'idle'
+            values = {'state': state, 'pending_objects': len(waiting),
                       'objects': len(self.estimates), 'tracks': len(self.tracks),
                       'sparse_objects': sum(e.stage == 'sparse' for e in self.estimates.values()),
-                      'views_held': len(self.view_store)}
+                      'dense_objects': sum(e.stage == 'dense' for e in self.estimates.values()),
+                      'views_held': len(self.view_store), 'dense_views_held': len(self.dense_store)}
             if self.sparse_info:
                 oid = max(self.sparse_info)
                 values['sparse_last'] = f'object {oid}: {self.sparse_info[oid]}'
+            if self.dense_info:
+                oid = max(self.dense_info)
+                values['dense_last'] = f'object {oid}: {self.dense_info[oid]}'
             return values
 
     def diagnostic_summary(self) -> tuple[int, str]:

@@ -36,7 +36,8 @@ def test_fused_estimate_world_mesh_and_box():
 def test_state_table_to_json_records():
     from frodo_optim.states import STATES_DTYPE, states_to_records
     table = np.zeros(1, dtype=STATES_DTYPE)
-    table[0] = (7, 67, 0, 12, 1.3, np.eye(4).ravel(), [1, 2, 0.4, 1.2, 0.8, 0.75, 0.1], np.ones(64), 0.5)
+    table[0] = (7, 67, 1, 12, 1.3, np.eye(4).ravel(), [1, 2, 0.4, 1.2, 0.8, 0.75, 0.1], np.ones(64), 0.5, 5)
     record = states_to_records(table)[7]
-    assert record['class'] == 'dining table' and record['stage'] == 'fused' and record['num_views'] == 12
+    assert record['class'] == 'dining table' and record['stage'] == 'sparse' and record['num_views'] == 12
+    assert record['stage_reason'] == 'dense not better than sparse'
     assert record['pose'] == np.eye(4).tolist() and record['box']['size'] == [1.2, 0.8, 0.75]
