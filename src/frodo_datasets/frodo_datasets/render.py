@@ -156,6 +156,42 @@ class RenderResult:
     depth: np.ndarray
 
 
+@dataclass
+class Realism:
+    """Optional rendering effects (all off by default; the real-capture preset turns them on).
+
+    ao_samples: ambient-occlusion rays per pixel (0 = none); ao_radius: their length, m; ao_strength: how
+    much of the ambient term a fully occluded point loses. soft_shadow_deg: angular radius of the light
+    (one jittered shadow ray per pixel; 0 = hard shadows). specular, shininess: Blinn-Phong highlight
+    (white, added on top of the diffuse colour). seed: the random rays (fixed per frame for repeatability).
+    Cost at 320x240 (2-core CPU VM, shared/loaded): 4 AO rays + soft shadows + specular make a frame about
+    3x slower than the plain shading.
+    """
+
+    ao_samples: int = 0
+    ao_radius: float = 0.35
+    ao_strength: float = 0.8
+    soft_shadow_deg: float = 0.0
+    specular: float = 0.0
+    shininess: float = 40.0
+    seed: int = 0
+
+    @property
+    def active(self) -> bool:
+        return bool(self.ao_samples or self.soft_shadow_deg or self.specular)
+
+
+def _jitter_directions(directions: np.ndarray, max_angle: float, rng: np.random.Generator) -> np.ndarray:
+    """Unit directions (N, 3) each tilted towards a uniform random point of a cone of half-angle `max_angle`."""
+    helper = np.where(np.abs(directions[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    tangent = np.cross(directions, helper)
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    bitangent = np.cross(directions, tangent)
+    radius, phi = np.tan(max_angle) * np.sqrt(rng.uniform(size=len(directions))), rng.uniform(0, 2 * np.pi, len(directions))
+    out = directions + (radius * np.cos(phi))[:, None] * tangent + (radius * np.sin(phi))[:, None] * bitangent
+    return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
 class Renderer:
     """Ray caster over a fixed set of objects; build once, render many cameras.
 
@@ -177,12 +213,14 @@ class Renderer:
 
     def render(self, K: np.ndarray, T_world_camera: np.ndarray, width: int, height: int,
                light: Light | None = None, ambient: float = 0.35, shadows: bool = True,
-               background: np.ndarray | Sequence[float] | None = None) -> RenderResult:
+               background: np.ndarray | Sequence[float] | None = None,
+               quality: Realism | None = None) -> RenderResult:
         """Render one view.
 
         K (3, 3) pinhole intrinsics; T_world_camera (4, 4) optical camera pose; light defaults to `Light()`;
         ambient and light intensity are multiplied by the albedo (clipped to 1). background: RGB colour in
-        [0, 1] (3,) or an image (H, W, 3) uint8 shown where rays hit nothing; None = black.
+        [0, 1] (3,) or an image (H, W, 3) uint8 shown where rays hit nothing; None = black. quality: ambient
+        occlusion, soft shadows and specular highlights (`Realism`); None = plain Lambertian (the default).
         """
         light = light if light is not None else Light()
         K = np.asarray(K, dtype=np.float64)
@@ -209,13 +247,27 @@ class Renderer:
             for i in np.unique(owner):
                 sel = owner == i
                 albedo[sel] = self.objects[i].material.albedo(loc[sel])
-            shade = ambient + light.intensity * self._direct(loc, normals, light, shadows)
-            rgb[ray] = np.clip(albedo * shade[:, None], 0.0, 1.0)
+            if quality is None or not quality.active:
+                shade = ambient + light.intensity * self._direct(loc, normals, light, shadows)
+                rgb[ray] = np.clip(albedo * shade[:, None], 0.0, 1.0)
+            else:
+                rng = np.random.default_rng(quality.seed)
+                direct = self._direct(loc, normals, light, shadows, quality.soft_shadow_deg, rng)
+                occlusion = self._ambient_occlusion(loc, normals, quality, rng)
+                colour = albedo * (ambient * (1.0 - quality.ao_strength * occlusion) + light.intensity * direct)[:, None]
+                if quality.specular > 0:
+                    to_light = self._to_light(loc, light)[0]
+                    half = to_light - dirs[ray]
+                    half /= np.maximum(np.linalg.norm(half, axis=1, keepdims=True), 1e-9)
+                    glint = np.clip(np.sum(normals * half, axis=1), 0.0, None) ** quality.shininess
+                    colour += (quality.specular * light.intensity * glint * (direct > 0))[:, None]
+                rgb[ray] = np.clip(colour, 0.0, 1.0)
         return RenderResult(rgb=(rgb.reshape(height, width, 3) * 255 + 0.5).astype(np.uint8),
                             labels=labels.reshape(height, width), depth=depth.reshape(height, width))
 
-    def _direct(self, points: np.ndarray, normals: np.ndarray, light: Light, shadows: bool) -> np.ndarray:
-        """Cosine term (N,) of the light at surface points, zero where occluded (when `shadows`)."""
+    @staticmethod
+    def _to_light(points: np.ndarray, light: Light) -> tuple[np.ndarray, np.ndarray]:
+        """Unit directions (N, 3) from surface points to the light and distances (N,) (inf if directional)."""
         if light.position is not None:
             to_light = np.asarray(light.position, dtype=np.float64) - points
             dist = np.linalg.norm(to_light, axis=1)
@@ -224,16 +276,53 @@ class Renderer:
             to_light = np.broadcast_to(-np.asarray(light.direction, dtype=np.float64)
                                        / np.linalg.norm(light.direction), points.shape).copy()
             dist = np.full(len(points), np.inf)
+        return to_light, dist
+
+    def _direct(self, points: np.ndarray, normals: np.ndarray, light: Light, shadows: bool,
+                soft_deg: float = 0.0, rng: np.random.Generator | None = None) -> np.ndarray:
+        """Cosine term (N,) of the light at surface points, zero where occluded (when `shadows`).
+
+        soft_deg > 0: the shadow ray of each point goes to a random point of a light disc of that angular
+        radius (one jittered ray per pixel: penumbrae are soft but grainy, like a noisy sensor sees them).
+        """
+        to_light, dist = self._to_light(points, light)
         cos = np.clip(np.sum(normals * to_light, axis=1), 0.0, None)
         if shadows:
             lit = np.flatnonzero(cos > 0)
             if len(lit):
                 start = points[lit] + normals[lit] * self._eps
-                s_tri, s_ray, s_loc = self._ray.intersects_id(start, to_light[lit], multiple_hits=False,
+                towards = to_light[lit]
+                if soft_deg > 0 and rng is not None:
+                    towards = _jitter_directions(towards, np.radians(soft_deg), rng)
+                s_tri, s_ray, s_loc = self._ray.intersects_id(start, towards, multiple_hits=False,
                                                               return_locations=True)
                 blocked = np.linalg.norm(s_loc - start[s_ray], axis=1) < dist[lit][s_ray]
                 cos[lit[s_ray[blocked]]] = 0.0
         return cos
+
+    def _ambient_occlusion(self, points: np.ndarray, normals: np.ndarray, quality: Realism,
+                           rng: np.random.Generator) -> np.ndarray:
+        """Fraction (N,) of `quality.ao_samples` cosine-weighted hemisphere rays per point that hit a surface
+        within `quality.ao_radius` metres (0 = open sky, 1 = fully enclosed): darkens creases, the floor
+        under tables and chairs, and the seat under a table top."""
+        n = quality.ao_samples
+        if n <= 0 or not len(points):
+            return np.zeros(len(points))
+        normal = np.repeat(normals, n, axis=0)
+        start = np.repeat(points, n, axis=0) + normal * self._eps
+        # Cosine-weighted hemisphere: uniform disc sample lifted onto the hemisphere about the normal.
+        r, phi = np.sqrt(rng.uniform(size=len(start))), rng.uniform(0, 2 * np.pi, len(start))
+        helper = np.where(np.abs(normal[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+        tangent = np.cross(normal, helper)
+        tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+        bitangent = np.cross(normal, tangent)
+        dirs = ((r * np.cos(phi))[:, None] * tangent + (r * np.sin(phi))[:, None] * bitangent
+                + np.sqrt(np.clip(1 - r * r, 0, None))[:, None] * normal)
+        _, hit_ray, hit_loc = self._ray.intersects_id(start, dirs, multiple_hits=False, return_locations=True)
+        near = np.linalg.norm(hit_loc - start[hit_ray], axis=1) < quality.ao_radius
+        hits = np.zeros(len(start))
+        hits[hit_ray[near]] = 1.0
+        return hits.reshape(-1, n).mean(axis=1)
 
     @staticmethod
     def _background(background, height: int, width: int) -> np.ndarray:

@@ -24,6 +24,7 @@ from frodo_datasets.render import Material, RenderObject
 
 WALL_HEIGHT = 2.6
 LAYOUTS = ('walk', 'orbit')
+TRAJECTORIES = ('walk', 'orbit', 'handheld')
 
 
 @dataclass
@@ -132,15 +133,34 @@ def _class_list(n_objects: int, classes: Sequence[str]) -> list[str]:
     return [classes[i % len(classes)] for i in range(n_objects)]
 
 
+FAMILY_SETS = ('train', 'all', 'heldout')
+
+
+def family_pool(class_name: str, family_set: str = 'train') -> list[str]:
+    """Families a scene draws from: 'train' (the prior's training families, the default), 'heldout' (the
+    evaluation-only designs of `shapes.eval_families`) or 'all' (both)."""
+    from frodo_datasets.shapes import eval_families, families
+
+    if family_set not in FAMILY_SETS:
+        raise ValueError(f'family_set must be one of {FAMILY_SETS}, got {family_set!r}')
+    pool = [] if family_set == 'heldout' else families(class_name)
+    return pool + (eval_families(class_name) if family_set != 'train' else [])
+
+
 def compose_scene(n_objects: int = 3, classes: Sequence[str] = ('chair', 'dining table'), seed: int = 0,
-                  layout: str = 'walk', clearance: float = 0.12, max_tries: int = 2000) -> Scene:
+                  layout: str = 'walk', clearance: float = 0.12, max_tries: int = 2000,
+                  family_set: str = 'train', tuck_chairs: float = 0.0, clutter: int = 0) -> Scene:
     """Place `n_objects` procedural objects (classes cycled from `classes`) in a room.
 
     layout 'walk': objects spread over an inner area of the room that grows with the object count, with a
     camera corridor between it and the walls; 'orbit': objects packed around the room centre (the first
     object at the centre) so an orbit sees the group. Raises RuntimeError when the objects cannot be placed.
+    family_set: see `family_pool`. Real-capture options (off by default; they draw from their own random
+    streams, so a scene without them is unchanged): `tuck_chairs` is the probability that a chair is moved
+    to a table side and pushed under its top (`tuck_chair`); `clutter` is the number of unlabelled small
+    items (boxes, books, bottles, bowls) put on each table top (`add_clutter`).
     """
-    from frodo_datasets.shapes import families, generate
+    from frodo_datasets.shapes import generate
 
     if layout not in LAYOUTS:
         raise ValueError(f'layout must be one of {LAYOUTS}, got {layout!r}')
@@ -150,7 +170,7 @@ def compose_scene(n_objects: int = 3, classes: Sequence[str] = ('chair', 'dining
     names = _class_list(n_objects, classes)
     shapes = []
     for name in names:
-        fams = families(name)
+        fams = family_pool(name, family_set)
         family = fams[int(rng.integers(len(fams)))]
         shape_seed = int(rng.integers(0, 1_000_000))
         shapes.append((name, family, shape_seed, generate(name, shape_seed, family)))
@@ -183,12 +203,127 @@ def compose_scene(n_objects: int = 3, classes: Sequence[str] = ('chair', 'dining
             raise RuntimeError(f'could not place {n_objects} objects ({", ".join(names)}) without overlap; '
                                f'try fewer objects or another seed')
     objects = [placed[i] for i in range(n_objects)]
+    if tuck_chairs > 0:
+        tuck_rng = np.random.default_rng([seed, 11])
+        tables = [o for o in objects if o.class_name == 'dining table']
+        for chair in [o for o in objects if o.class_name == 'chair']:
+            if tables and tuck_rng.random() < tuck_chairs:
+                table = tables[int(tuck_rng.integers(len(tables)))]
+                tucked = tuck_chair(chair, table, [o for o in objects if o is not chair], tuck_rng)
+                if tucked is not None:
+                    chair.T_world_object = tucked
     reach = max(np.abs(o.footprint).max(axis=0).max() for o in objects)
     corridor = 1.6 if layout == 'walk' else 2.6
     size = (2 * max(reach, inner[0] / 2) + 2 * corridor, 2 * max(reach, inner[1] / 2) + 2 * corridor)
     room = _room_geometry(size[0], size[1], rng)
+    if clutter > 0:
+        room += add_clutter(objects, clutter, np.random.default_rng([seed, 12]))
     return Scene(objects, room, (float(size[0]), float(size[1])), layout, int(seed),
                  (float(inner[0]), float(inner[1])))
+
+
+# ---------------------------------------------------------------- real-capture arrangements
+def _manifold(mesh: trimesh.Trimesh):
+    from manifold3d import Manifold, Mesh
+    return Manifold(Mesh(vert_properties=np.asarray(mesh.vertices, np.float32),
+                         tri_verts=np.asarray(mesh.faces, np.uint32)))
+
+
+def _intersection_volume(a: trimesh.Trimesh, b: trimesh.Trimesh) -> float:
+    """Volume (m^3) shared by two watertight meshes (manifold3d exact boolean)."""
+    return float((_manifold(a) ^ _manifold(b)).volume())
+
+
+def tuck_chair(chair: SceneObject, table: SceneObject, others: Sequence[SceneObject], rng: np.random.Generator,
+               clearance: float = 0.05) -> np.ndarray | None:
+    """A pose (4, 4) that puts `chair` at a random side of `table`, facing it (+-10 degrees), pushed as far
+    under the top as it goes without touching the table (exact mesh intersection, bisection on the push
+    depth) times a random 40-100 %, clear of `others`' footprints. None if no side works (8 tries).
+
+    This is the arrangement real rooms have and the plain layouts lack: the seat and legs hidden under
+    the table top, the chair back against its edge.
+    """
+    table_world = table.mesh_world
+    t_half = table.mesh.extents[:2] / 2
+    c_half = chair.mesh.extents[:2] / 2
+    for _ in range(8):
+        side = int(rng.integers(4))  # +x, -x, +y, -y side of the table, in the table frame
+        axis = np.array([[1, 0], [-1, 0], [0, 1], [0, -1]][side], float)
+        along = np.array([-axis[1], axis[0]])
+        span = max(0.0, t_half @ np.abs(along) - c_half[1])
+        offset = rng.uniform(-span, span) * 0.8
+        yaw_local = np.arctan2(-axis[1], -axis[0]) + np.radians(rng.uniform(-10, 10))  # chair front faces the table
+        table_yaw = table.yaw
+
+        def pose(depth: float) -> np.ndarray:
+            centre_local = axis * (t_half @ np.abs(axis) + c_half[0] - depth) + along * offset
+            c, s_ = np.cos(table_yaw), np.sin(table_yaw)
+            xy = table.T_world_object[:2, 3] + np.array([[c, -s_], [s_, c]]) @ centre_local
+            return make_transform(yaw_matrix(table_yaw + yaw_local), (xy[0], xy[1], -chair.mesh.bounds[0, 2]))
+
+        def free(depth: float) -> bool:
+            mesh = chair.mesh.copy().apply_transform(pose(depth))
+            return _intersection_volume(mesh, table_world) < 1e-7
+
+        if not free(0.0):
+            continue
+        lo, hi = 0.0, 2 * c_half[0]
+        for _ in range(10):
+            mid = (lo + hi) / 2
+            lo, hi = (mid, hi) if free(mid) else (lo, mid)
+        T = pose(lo * rng.uniform(0.4, 1.0))
+        candidate = SceneObject(chair.id, chair.class_name, chair.coco_id, chair.mesh, T, chair.material)
+        if not any(footprints_overlap(candidate.footprint, o.footprint, clearance) for o in others if o is not table):
+            return T
+    return None
+
+
+def _clutter_item(rng: np.random.Generator) -> trimesh.Trimesh:
+    """One small table-top item standing on z = 0: a box, a book stack, a bottle, a mug or a bowl."""
+    kind = rng.choice(['box', 'books', 'bottle', 'mug', 'bowl'])
+    if kind == 'box':
+        mesh = trimesh.creation.box(rng.uniform([0.08, 0.08, 0.05], [0.30, 0.25, 0.25]))
+    elif kind == 'books':
+        mesh = trimesh.creation.box((rng.uniform(0.15, 0.3), rng.uniform(0.12, 0.22), rng.uniform(0.02, 0.12)))
+    elif kind == 'bottle':
+        radius, tall = rng.uniform(0.03, 0.045), rng.uniform(0.18, 0.32)
+        body = trimesh.creation.cylinder(radius, tall * 0.7, sections=16)
+        body.apply_translation((0, 0, tall * 0.35))
+        neck = trimesh.creation.cylinder(radius * 0.35, tall * 0.35, sections=12)
+        neck.apply_translation((0, 0, tall * 0.8))
+        mesh = trimesh.util.concatenate([body, neck])
+    elif kind == 'mug':
+        mesh = trimesh.creation.cylinder(rng.uniform(0.035, 0.05), rng.uniform(0.08, 0.11), sections=16)
+    else:
+        mesh = trimesh.creation.cone(rng.uniform(0.07, 0.13), rng.uniform(0.05, 0.08), sections=20)
+        mesh.apply_transform(make_transform(np.diag([1.0, -1.0, -1.0])))  # opening up
+    mesh.apply_translation((0, 0, -mesh.bounds[0, 2]))
+    return mesh
+
+
+def add_clutter(objects: Sequence[SceneObject], per_table: int, rng: np.random.Generator) -> list[RenderObject]:
+    """Up to `per_table` small unlabelled items (label 0: not objects to reconstruct, they only occlude) on
+    the top of every table, each resting where a downward ray from above hits the table's upper surface."""
+    from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+    items = []
+    for table in [o for o in objects if o.class_name == 'dining table']:
+        mesh = table.mesh_world
+        caster = RayMeshIntersector(mesh)
+        top = mesh.bounds[1, 2]
+        half = table.mesh.extents[:2] / 2
+        for _ in range(per_table):
+            local = rng.uniform(-0.8 * half, 0.8 * half)
+            xy = table.T_world_object[:2, :2] @ local + table.T_world_object[:2, 3]
+            locations, _, _ = caster.intersects_location([[xy[0], xy[1], top + 1.0]], [[0.0, 0.0, -1.0]],
+                                                         multiple_hits=False)
+            if not len(locations) or locations[0, 2] < top - 0.06:  # missed the top (round or narrow tops)
+                continue
+            item = _clutter_item(rng)
+            item.apply_transform(make_transform(yaw_matrix(rng.uniform(-np.pi, np.pi)),
+                                                (xy[0], xy[1], locations[0, 2] + 1e-3)))
+            items.append(RenderObject(item, Material.random(rng), 0))
+    return items
 
 
 # ---------------------------------------------------------------- trajectories
@@ -280,10 +415,99 @@ def walk_trajectory(scene: Scene, n_frames: int = 60, seed: int = 0, height: tup
     return poses
 
 
+class HandheldPath:
+    """Real-capture-like hand-held scan: the camera goes from object to object, stops at close range (0.5-2 m
+    from a point on the object's surface, so big objects are cut by the image border), looks at different
+    parts of each, and visits every object twice in a random order. Continuous in time (`pose(t)`, for
+    motion blur); `keyframes(n)` spreads n views over the whole path, as a SLAM system's keyframes are
+    (far apart, not consecutive frames).
+
+    The path: per visit 2-3 waypoints (eye, target) on an arc around the object at horizontal distance
+    `distance` and eye height `height`, eyes kept out of the furniture and 0.3 m from the walls; eye and
+    target interpolated by monotone cubics (PCHIP, no overshoot) at walking speed `speed` with a dwell at
+    each waypoint; a few degrees of smooth hand roll.
+    """
+
+    def __init__(self, scene: Scene, seed: int = 0, distance: tuple[float, float] = (0.4, 1.7),
+                 height: tuple[float, float] = (1.0, 1.6), speed: float = 0.35, dwell_s: float = 1.0,
+                 visits_per_object: int = 2):
+        from scipy.interpolate import PchipInterpolator
+
+        rng = np.random.default_rng(seed)
+        self.scene = scene
+        order = [o for _ in range(visits_per_object) for o in rng.permutation(scene.objects)]
+        eyes, targets = [], []
+        for obj in order:
+            mesh = obj.mesh_world
+            azimuth = rng.uniform(0, 2 * np.pi)
+            for _ in range(int(rng.integers(2, 4))):
+                azimuth += rng.uniform(0.3, 1.1) * rng.choice([-1, 1])
+                target = trimesh.sample.sample_surface(mesh, 1, seed=int(rng.integers(2**31)))[0][0]
+                eye = self._place_eye(target, azimuth, distance, height, rng)
+                eyes.append(eye)
+                targets.append(target)
+        eyes, targets = np.array(eyes), np.array(targets)
+        legs = np.linalg.norm(np.diff(eyes, axis=0), axis=1) + 0.3 * np.linalg.norm(np.diff(targets, axis=0), axis=1)
+        times = np.concatenate([[0.0], np.cumsum(legs / speed + dwell_s)])
+        self.duration = float(times[-1])
+        self._eye = PchipInterpolator(times, eyes)
+        self._target = PchipInterpolator(times, targets)
+        self._roll = (rng.normal(0, 2.0, 4), rng.uniform(0, 2 * np.pi, 4))
+
+    def _inside_furniture(self, eye: np.ndarray, margin: float = 0.2) -> bool:
+        for o in self.scene.objects:
+            if eye[2] < o.mesh_world.bounds[1, 2] + margin:
+                local = (eye[:2] - o.T_world_object[:2, 3]) @ o.T_world_object[:2, :2]
+                if np.all(np.abs(local) < o.mesh.extents[:2] / 2 + margin):
+                    return True
+        return False
+
+    def _in_room(self, eye: np.ndarray) -> bool:
+        return bool(np.all(np.abs(eye[:2]) < np.asarray(self.scene.room_size) / 2 - 0.3))
+
+    def _place_eye(self, target: np.ndarray, azimuth: float, distance: tuple[float, float],
+                   height: tuple[float, float], rng: np.random.Generator) -> np.ndarray:
+        eye = None
+        for attempt in range(40):
+            az = azimuth + (0 if attempt == 0 else rng.uniform(-np.pi, np.pi))
+            d = rng.uniform(*distance)
+            eye = np.array([target[0] + d * np.cos(az), target[1] + d * np.sin(az), rng.uniform(*height)])
+            if self._in_room(eye) and not self._inside_furniture(eye):
+                return eye
+        half = np.asarray(self.scene.room_size) / 2 - 0.3
+        eye[:2] = np.clip(eye[:2], -half, half)
+        return eye
+
+    def pose(self, t: float) -> np.ndarray:
+        """T_world_camera (4, 4) at time t in [0, duration] seconds."""
+        t = float(np.clip(t, 0.0, self.duration))
+        eye, target = self._eye(t), self._target(t)
+        if self._inside_furniture(eye, margin=0.05):  # between waypoints: step over the furniture
+            top = max(o.mesh_world.bounds[1, 2] for o in self.scene.objects)
+            eye = np.array([eye[0], eye[1], max(eye[2], top + 0.1)])
+        T = look_at(eye, target)
+        amplitude, phase = self._roll
+        roll = np.radians(np.sum(amplitude * np.sin(2 * np.pi * t / np.array([7.0, 3.1, 1.7, 0.9]) + phase)))
+        c, s_ = np.cos(roll), np.sin(roll)
+        return T @ make_transform(np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]]))
+
+    def keyframe_times(self, n_frames: int, seed: int = 0) -> np.ndarray:
+        """n_frames times spread evenly over the whole path, each jittered by up to 30 % of the spacing."""
+        spacing = self.duration / max(n_frames, 1)
+        jitter = np.random.default_rng(seed).uniform(-0.3, 0.3, n_frames) * spacing
+        return np.clip((np.arange(n_frames) + 0.5) * spacing + jitter, 0.0, self.duration)
+
+    def keyframes(self, n_frames: int, seed: int = 0) -> list[np.ndarray]:
+        """Poses of `keyframe_times(n_frames)`."""
+        return [self.pose(t) for t in self.keyframe_times(n_frames, seed)]
+
+
 def trajectory(scene: Scene, kind: str, n_frames: int, seed: int = 0, hfov_deg: float = 60.0) -> list[np.ndarray]:
-    """`orbit_trajectory` or `walk_trajectory` by name."""
+    """`orbit_trajectory`, `walk_trajectory` or the keyframes of a `HandheldPath` by name."""
     if kind == 'orbit':
         return orbit_trajectory(scene, n_frames, seed, hfov_deg=hfov_deg)
     if kind == 'walk':
         return walk_trajectory(scene, n_frames, seed)
-    raise ValueError(f'trajectory kind must be one of {LAYOUTS}, got {kind!r}')
+    if kind == 'handheld':
+        return HandheldPath(scene, seed).keyframes(n_frames, seed)
+    raise ValueError(f'trajectory kind must be one of {TRAJECTORIES}, got {kind!r}')

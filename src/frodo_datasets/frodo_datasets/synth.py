@@ -31,8 +31,10 @@ from frodo_common.conversions import (make_camera_info, make_pose_stamped, mesh_
                                       xyz_to_cloud)
 from frodo_common.geometry import invert_transform, project_points
 from frodo_datasets.degrade import MaskNoise, PoseNoise, PoseNoiser, add_image_noise, degrade_instances
-from frodo_datasets.render import Light, Renderer, intrinsics
-from frodo_datasets.scene import Scene, compose_scene, trajectory
+from frodo_datasets.realcapture import (CaptureEffects, blur_vector, distort, distortion_maps, kinect_depth,
+                                        motion_blur, photometric, shaken_pose, texture_strength)
+from frodo_datasets.render import Light, Realism, Renderer, intrinsics
+from frodo_datasets.scene import HandheldPath, Scene, compose_scene, trajectory
 
 DEPTH_TOPIC = '/camera/aligned_depth_to_color/image_raw'
 CAMERA_FRAME = 'camera_color_optical_frame'
@@ -44,10 +46,18 @@ SIDECAR_SUFFIX = '.gt.json'
 class SynthConfig:
     """What to synthesise.
 
-    scene: trajectory and layout, 'walk' (room walk) or 'orbit' (object-centric loop).
+    scene: trajectory and layout, 'walk' (room walk), 'orbit' (object-centric loop) or 'handheld' (walk
+      layout, close-range hand-held scan with the frames spread over a long path: `scene.HandheldPath`).
     min_mask_pixels: visible object parts smaller than this are not reported as instances.
     slam_density: landmarks per m² of object surface (room surfaces get a twentieth of it).
     slam_noise_m: std of the fixed per-landmark position error.
+    slam_texture_min: keep only landmarks whose surface texture (`realcapture.texture_strength`) reaches
+      this (0 = everywhere, as before; feature-based SLAM has no landmarks on plain surfaces).
+    family_set, tuck_chairs, clutter: see `scene.compose_scene`.
+    realism: ambient occlusion, soft shadows, specular highlights (`render.Realism`, off by default).
+    capture: exposure, vignetting, sensor noise, motion blur, lens distortion, depth noise
+      (`realcapture.CaptureEffects`, off by default).
+    depth_topic: where `depth=True` writes depth (CONTRACT v1.1 names `/camera/depth/image_raw`).
     """
 
     scene: str = 'walk'
@@ -73,6 +83,13 @@ class SynthConfig:
     shadows: bool = True
     world_frame: str = 'world'
     compression: str = 'zstd'
+    family_set: str = 'train'
+    tuck_chairs: float = 0.0
+    clutter: int = 0
+    realism: Realism = field(default_factory=Realism)
+    capture: CaptureEffects = field(default_factory=CaptureEffects)
+    slam_texture_min: float = 0.0
+    depth_topic: str = DEPTH_TOPIC
 
 
 @dataclass
@@ -91,12 +108,16 @@ class SynthResult:
 class _Landmarks:
     """Simulated SLAM map: fixed noisy surface samples that join the map once seen in enough frames."""
 
-    def __init__(self, scene: Scene, density: float, noise: float, rng: np.random.Generator):
+    def __init__(self, scene: Scene, density: float, noise: float, rng: np.random.Generator,
+                 texture_min: float = 0.0):
         pts = []
         for obj in scene.render_objects():
             rate = density if obj.label else density / 20
             n = max(1, int(rate * obj.mesh.area))
-            pts.append(trimesh.sample.sample_surface(obj.mesh, n, seed=int(rng.integers(2**31)))[0])
+            samples = trimesh.sample.sample_surface(obj.mesh, n, seed=int(rng.integers(2**31)))[0]
+            if texture_min > 0:
+                samples = samples[texture_strength(obj.material, samples) >= texture_min]
+            pts.append(samples)
         self.true = np.concatenate(pts)
         self.noisy = self.true + rng.normal(0, noise, self.true.shape)
         self.views = np.zeros(len(self.true), dtype=np.int32)
@@ -144,23 +165,47 @@ def ground_truth_markers(scene: Scene, stamp_ns: int, frame_id: str) -> MarkerAr
 
 
 def synthesize(config: SynthConfig, out_path: str | Path, progress: Callable[[int], None] | None = None,
-               sidecar: bool = True) -> SynthResult:
+               sidecar: bool = True, scene: Scene | None = None, poses: list[np.ndarray] | None = None,
+               K: np.ndarray | None = None) -> SynthResult:
     """Compose the scene, render every frame and write the contract bag to `out_path`.
 
     `progress(1)` is called after each frame (e.g. `tqdm.update`). Returns a `SynthResult`.
+    scene, poses (T_world_camera (4, 4) each, `config.frames` of them) and K (3, 3) replace the composed room,
+    the generated trajectory and the `hfov_deg` intrinsics when given (e.g. public furniture models placed
+    as in their world file, rendered along a recorded camera trajectory: `frodo_datasets.real_data`).
     """
     if config.frames < 1 or config.width < 8 or config.height < 8:
         raise ValueError('need at least 1 frame and an image of at least 8x8 pixels')
+    if poses is not None and len(poses) != config.frames:
+        raise ValueError(f'{len(poses)} poses given for {config.frames} frames')
     out_path = Path(out_path)
     rng = np.random.default_rng(config.seed)
-    scene = compose_scene(config.objects, config.classes, seed=config.seed, layout=config.scene)
-    poses = trajectory(scene, config.scene, config.frames, seed=config.seed + 1, hfov_deg=config.hfov_deg)
-    K = intrinsics(config.width, config.height, config.hfov_deg)
+    if scene is None:
+        layout = 'walk' if config.scene == 'handheld' else config.scene
+        scene = compose_scene(config.objects, config.classes, seed=config.seed, layout=layout,
+                              family_set=config.family_set, tuck_chairs=config.tuck_chairs, clutter=config.clutter)
+    path = None
+    times = np.arange(config.frames) / config.fps
+    if poses is None:
+        if config.scene == 'handheld':
+            path = HandheldPath(scene, seed=config.seed + 1)
+            times = path.keyframe_times(config.frames, seed=config.seed + 1)
+            poses = [path.pose(t) for t in times]
+        else:
+            poses = trajectory(scene, config.scene, config.frames, seed=config.seed + 1, hfov_deg=config.hfov_deg)
+    if K is None:
+        K = intrinsics(config.width, config.height, config.hfov_deg)
+    # Real-capture effects draw from their own stream, so bags without them are unchanged.
+    fx_rng = np.random.default_rng([config.seed, 3])
+    capture = config.capture
+    lens = (distortion_maps(K, capture.distortion, config.width, config.height)
+            if any(capture.distortion) else None)
     renderer = Renderer(scene.render_objects())
     elevation, azimuth = rng.uniform(np.radians(45), np.radians(70)), rng.uniform(0, 2 * np.pi)
     light = Light(direction=(-np.cos(elevation) * np.cos(azimuth), -np.cos(elevation) * np.sin(azimuth),
                              -np.sin(elevation)), intensity=0.7)
-    landmarks = _Landmarks(scene, config.slam_density, config.slam_noise_m, rng) if config.slam else None
+    landmarks = (_Landmarks(scene, config.slam_density, config.slam_noise_m, rng, config.slam_texture_min)
+                 if config.slam else None)
     noiser = PoseNoiser(config.pose_noise, rng)
     stamps = [config.start_ns + int(round(k * 1e9 / config.fps)) for k in range(config.frames)]
     published: list[np.ndarray] = []
@@ -175,20 +220,32 @@ def synthesize(config: SynthConfig, out_path: str | Path, progress: Callable[[in
                       qos_yaml(transient_local=True, depth=1))
         put(topics.GROUND_TRUTH, ground_truth_markers(scene, stamps[0], world), stamps[0])
         for k, (stamp, T) in enumerate(zip(stamps, poses)):
-            res = renderer.render(K, T, w, h, light=light, shadows=config.shadows, background=(0.82, 0.86, 0.9))
+            quality = (Realism(**{**asdict(config.realism), 'seed': config.realism.seed + k})
+                       if config.realism.active else None)
+            res = renderer.render(K, T, w, h, light=light, shadows=config.shadows, background=(0.82, 0.86, 0.9),
+                                  quality=quality)
             rgb = add_image_noise(res.rgb, config.image_noise, rng)
-            instances = instance_image(res.labels, scene, rng, config.min_mask_pixels)
+            rgb = _camera_effects(rgb, res.depth, K, T, path, float(times[k]), capture, fx_rng)
+            labels, depth = res.labels, res.depth
+            if lens is not None:
+                rgb, labels, depth = distort(rgb, lens), distort(labels, lens, True), distort(depth, lens, True)
+            instances = instance_image(labels, scene, rng, config.min_mask_pixels)
             if config.mask_noise.active:
                 instances = degrade_instances(instances, config.mask_noise, rng)
-            T_pub = noiser(T) if config.pose_noise.active else T
+            dt = float(times[k] - times[k - 1]) if k else float(times[0])
+            T_pub = noiser(T, dt) if config.pose_noise.active else T
             published.append(T_pub)
-            put(topics.CAMERA_INFO, make_camera_info(K, w, h, stamp, CAMERA_FRAME), stamp)
+            info = make_camera_info(K, w, h, stamp, CAMERA_FRAME)
+            if lens is not None:
+                info.d = [float(capture.distortion[0]), float(capture.distortion[1]), 0.0, 0.0, 0.0]
+            put(topics.CAMERA_INFO, info, stamp)
             put(topics.IMAGE, numpy_to_image(rgb, 'rgb8', stamp, CAMERA_FRAME), stamp)
             put(topics.POSE, make_pose_stamped(T_pub, stamp, world), stamp)
             put(topics.INSTANCES, numpy_to_image(instances, '16UC1', stamp, CAMERA_FRAME), stamp)
             if config.depth:
-                depth_mm = np.clip(np.round(res.depth * 1000), 0, 65535).astype(np.uint16)
-                put(DEPTH_TOPIC, numpy_to_image(depth_mm, '16UC1', stamp, CAMERA_FRAME), stamp)
+                sensed = kinect_depth(depth, fx_rng) if capture.depth_noise else depth
+                depth_mm = np.clip(np.round(sensed * 1000), 0, 65535).astype(np.uint16)
+                put(config.depth_topic, numpy_to_image(depth_mm, '16UC1', stamp, CAMERA_FRAME), stamp)
             if landmarks is not None:
                 landmarks.observe(K, T, res.depth)
                 if (k + 1) % config.slam_every == 0 or k == config.frames - 1:
@@ -198,8 +255,19 @@ def synthesize(config: SynthConfig, out_path: str | Path, progress: Callable[[in
             if progress is not None:
                 progress(1)
     if sidecar:
-        write_sidecar(sidecar_path(out_path), config, scene, K, stamps, poses, published)
+        write_sidecar(sidecar_path(out_path), config, scene, K, stamps, poses, published, times)
     return SynthResult(out_path, scene, K, stamps, poses, published, counts)
+
+
+def _camera_effects(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, T: np.ndarray, path: HandheldPath | None,
+                    t: float, capture: CaptureEffects, rng: np.random.Generator) -> np.ndarray:
+    """Motion blur (needs the continuous `path`), then exposure, vignetting and sensor noise."""
+    if capture.motion_blur_s > 0 and path is not None:
+        T_end = path.pose(t + capture.motion_blur_s)
+        if capture.hand_shake_dps:
+            T_end = shaken_pose(T_end, capture.hand_shake_dps, capture.motion_blur_s, rng)
+        rgb = motion_blur(rgb, blur_vector(K, depth, T, T_end))
+    return photometric(rgb, capture, rng) if capture.photometric else rgb
 
 
 def sidecar_path(bag_path: str | Path) -> Path:
@@ -209,12 +277,16 @@ def sidecar_path(bag_path: str | Path) -> Path:
 
 
 def write_sidecar(path: Path, config: SynthConfig, scene: Scene, K: np.ndarray, stamps: list[int],
-                  true_poses: list[np.ndarray], published: list[np.ndarray]) -> None:
-    """Ground-truth JSON: generation config, scene (objects, poses, shapes), intrinsics, per-frame poses."""
+                  true_poses: list[np.ndarray], published: list[np.ndarray], times: np.ndarray | None = None) -> None:
+    """Ground-truth JSON: generation config, scene (objects, poses, shapes), intrinsics, per-frame poses
+    (and, for hand-held paths, the capture time of each keyframe in seconds along the path)."""
     doc = {
         'config': asdict(config), 'scene': scene.to_dict(),
         'camera': {'K': K.tolist(), 'width': config.width, 'height': config.height, 'frame_id': CAMERA_FRAME},
         'frames': [{'stamp_ns': s, 'T_world_camera': T.tolist(), 'T_world_camera_published': P.tolist()}
                    for s, T, P in zip(stamps, true_poses, published)],
     }
+    if config.scene == 'handheld' and times is not None:
+        for frame, t in zip(doc['frames'], times):
+            frame['capture_time_s'] = float(t)
     path.write_text(json.dumps(doc, indent=1) + '\n')

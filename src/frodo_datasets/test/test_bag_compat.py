@@ -16,6 +16,7 @@ from rosbags.interfaces import QosDurability
 from rosbags.typesys import Stores, get_typestore
 
 from frodo_common.geometry import quat_to_matrix
+from frodo_datasets.realcapture import preset_kwargs
 from frodo_datasets.synth import SynthConfig, sidecar_path, synthesize
 
 BAGS = Path(__file__).resolve().parents[3] / 'bags'
@@ -38,6 +39,15 @@ def fresh_bag(tmp_path_factory):
     return path
 
 
+@pytest.fixture(scope='module')
+def handheld_bag(tmp_path_factory):
+    """A bag of the real-capture preset (every condition on), small."""
+    path = tmp_path_factory.mktemp('compat') / 'handheld.mcap'
+    synthesize(SynthConfig(**{**preset_kwargs('handheld'), 'frames': 6}, objects=3, width=96, height=72, seed=4,
+                           slam_every=3, min_mask_pixels=5), path)
+    return path
+
+
 def _bags(fresh_bag):
     return [(BAGS / 'demo_walk.mcap', 50), (BAGS / 'demo_orbit.mcap', 35), (fresh_bag, 6)]
 
@@ -56,8 +66,8 @@ def test_demo_bags_exist_and_are_small():
         assert (BAGS / name).stat().st_size < 5e6
 
 
-def test_mcap_profile_schemas_and_metadata(fresh_bag):
-    for path, frames in _bags(fresh_bag):
+def test_mcap_profile_schemas_and_metadata(fresh_bag, handheld_bag):
+    for path, frames in _bags(fresh_bag) + [(handheld_bag, 6)]:
         with open(path, 'rb') as f:
             reader = make_reader(f)
             assert reader.get_header().profile == 'ros2'
@@ -73,8 +83,8 @@ def test_mcap_profile_schemas_and_metadata(fresh_bag):
             assert info['message_count'] == summary.statistics.message_count
 
 
-def test_rosbags_reads_topics_stamps_and_values(fresh_bag):
-    for path, frames in _bags(fresh_bag):
+def test_rosbags_reads_topics_stamps_and_values(fresh_bag, handheld_bag):
+    for path, frames in _bags(fresh_bag) + [(handheld_bag, 6)]:
         conns, msgs = _read(path)
         assert {t: c.msgtype for t, c in conns.items()} == TYPES
         counts = {t: c.msgcount for t, c in conns.items()}

@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from frodo_datasets.shapes import (CANONICAL_RADIUS, ShapeRecord, axes_to_canonical, denormalise, families, generate,
-                                   library, load_user_meshes, normalise)
+from frodo_datasets.shapes import (CANONICAL_RADIUS, ShapeRecord, axes_to_canonical, denormalise, eval_families,
+                                   families, generate, library, load_user_meshes, normalise)
 from frodo_datasets.shapes.gallery import save_gallery
 
 FAMILY_CASES = [(class_name, family) for class_name in ('chair', 'dining table') for family in families(class_name)]
+HELDOUT_CASES = [(class_name, family) for class_name in ('chair', 'dining table') for family in eval_families(class_name)]
 SEEDS = range(12)
 
 # (min, max) metres of height (z), depth (x) and width (y) per family.
@@ -26,7 +27,27 @@ SIZE_RANGES = {
     ('dining table', 'pedestal'): {'height': (0.72, 0.76), 'depth': (0.7, 1.2), 'width': (0.7, 1.2)},
     ('dining table', 'trestle'): {'height': (0.72, 0.77), 'depth': (0.8, 1.0), 'width': (1.6, 2.4)},
     ('dining table', 'coffee'): {'height': (0.35, 0.5), 'depth': (0.5, 0.8), 'width': (0.9, 1.4)},
+    ('chair', 'cantilever'): {'height': (0.7, 1.0), 'depth': (0.4, 0.7), 'width': (0.4, 0.52)},
+    ('chair', 'tub'): {'height': (0.65, 0.9), 'depth': (0.55, 0.85), 'width': (0.55, 0.85)},
+    ('dining table', 'desk'): {'height': (0.72, 0.77), 'depth': (0.6, 0.85), 'width': (1.1, 1.8)},
+    ('dining table', 'round_four_leg'): {'height': (0.72, 0.77), 'depth': (0.9, 1.75), 'width': (0.9, 1.75)},
 }
+
+
+@pytest.mark.parametrize('class_name,family', HELDOUT_CASES)
+def test_heldout_families_are_watertight_sized_and_outside_the_training_library(class_name, family):
+    for seed in SEEDS:
+        mesh = generate(class_name, seed, family)
+        assert mesh.is_watertight and mesh.is_volume and mesh.body_count == 1, (family, seed)
+        assert np.allclose(mesh.bounds.mean(axis=0), 0.0, atol=1e-9)
+        depth, width, height = mesh.extents
+        ranges = SIZE_RANGES[(class_name, family)]
+        assert ranges['height'][0] <= height <= ranges['height'][1], (family, seed, height)
+        assert ranges['depth'][0] <= depth <= ranges['depth'][1] and ranges['width'][0] <= width <= ranges['width'][1], \
+            (family, seed, depth, width)
+    assert family not in families(class_name)
+    assert all(r.family != family for r in library(class_name, 12, seed=0))
+    assert np.array_equal(generate(class_name, 5, family).vertices, generate(class_name, 5, family).vertices)
 
 
 def shapenet_frame(mesh: trimesh.Trimesh) -> trimesh.Trimesh:

@@ -2,7 +2,8 @@
 
 `generate(class_name, seed, family)` is deterministic: the same arguments give identical vertices. Without
 a family, seed `k` uses family `families(class_name)[k % len(families)]`, so `generate(c, k)` equals
-`generate(c, k, families(c)[k % n])`. Meshes come back in the canonical metric frame (see `canonical`).
+`generate(c, k, families(c)[k % n])`. Held-out families (`eval_families`) are built only when named.
+Meshes come back in the canonical metric frame (see `canonical`).
 """
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from typing import Callable
 import numpy as np
 import trimesh
 
-from . import chairs, tables
+from . import chairs, heldout, tables
 from .canonical import centre_on_bbox
 
 Generator = Callable[[np.random.Generator], trimesh.Trimesh]
@@ -30,6 +31,19 @@ FAMILIES: dict[str, dict[str, Generator]] = {
         'pedestal': tables.pedestal_table,
         'trestle': tables.trestle_table,
         'coffee': tables.coffee_table,
+    },
+}
+
+# Held-out designs for evaluation only (`heldout`): never in `families()` / `library()`, so no prior is
+# trained or tuned on them; `generate()` builds them by name.
+EVAL_FAMILIES: dict[str, dict[str, Generator]] = {
+    'chair': {
+        'cantilever': heldout.cantilever_chair,
+        'tub': heldout.tub_chair,
+    },
+    'dining table': {
+        'desk': heldout.desk,
+        'round_four_leg': heldout.round_four_leg_table,
     },
 }
 
@@ -57,8 +71,14 @@ def class_names() -> list[str]:
 
 
 def families(class_name: str) -> list[str]:
-    """Procedural family names of a COCO class ('chair' or 'dining table')."""
+    """Procedural family names of a COCO class ('chair' or 'dining table'): the training families."""
     return list(_families_of(class_name))
+
+
+def eval_families(class_name: str) -> list[str]:
+    """Held-out family names of a COCO class, for evaluation only (never in `families` / `library`)."""
+    _families_of(class_name)
+    return list(EVAL_FAMILIES.get(class_name, {}))
 
 
 def _families_of(class_name: str) -> dict[str, Generator]:
@@ -74,8 +94,9 @@ def generate(class_name: str, seed: int, family: str | None = None) -> trimesh.T
     generators = _families_of(class_name)
     names = list(generators)
     family = names[seed % len(names)] if family is None else family
+    generators = {**generators, **EVAL_FAMILIES.get(class_name, {})}
     if family not in generators:
-        raise ValueError(f'unknown family {family!r} of class {class_name!r}; families: {names}')
+        raise ValueError(f'unknown family {family!r} of class {class_name!r}; families: {list(generators)}')
     mesh = generators[family](np.random.default_rng(seed))
     return centre_on_bbox(mesh)
 

@@ -1,0 +1,270 @@
+"""Real-capture evaluation and tuning sets: build the bags, run the graph on them, pool the scores.
+
+    python -m frodo_datasets.eval_sets build realcapture OUT [--variants full,full100] [--scenes 0-11]
+    python -m frodo_datasets.eval_sets run   realcapture OUT [--variants full] [--rate 1]
+    python -m frodo_datasets.eval_sets table realcapture OUT [--markdown]
+
+Two disjoint sets of rooms (issue 9), both in the `handheld` real-capture regime (`realcapture`):
+- `realcapture` (HELD OUT, for reporting only): 12 rooms, seeds 9100-9111, 3 or 4 objects each (42 in
+  all: 1-2 tables and 2 chairs), shapes from the training families AND the evaluation-only families
+  (`shapes.eval_families`: cantilever and tub chairs, desks, round four-leg tables), which no prior was
+  trained on and nobody may tune on;
+- `realcapture-tune` (for tuning): 6 rooms, seeds 8100-8105, training families only.
+Never tune on `realcapture`; report on it.
+
+Variants (`VARIANTS`) are the same rooms under different conditions: `full` (every condition, 35
+keyframes), `full100` (every condition, 100 views), and one condition at a time on top of `plain` (the
+project's usual regime: a room walk of 60 consecutive clean frames): `truncation` (close-range hand-held
+path, 100 views, clean), `keyframes` (the same path at 35 keyframes), `occlusion` (chairs pushed under
+tables, clutter on tables), `masks` (detector-like mask errors), `drift` (pose noise and drift), `camera`
+(exposure, vignetting, sensor noise, ambient occlusion, soft shadows, specular highlights).
+
+Bags are not committed; `build` regenerates them deterministically (same seed -> same scene and frames).
+`run` calls `frodo run` on every bag that has no result yet (results/<variant>/<scene>.json, so an
+interrupted run keeps what it finished) and scores it with the contract protocol; `table` pools them:
+recall, false positives per scene, median centre error, mean CD and F1@5cm of the matched objects.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from frodo_datasets.realcapture import preset_kwargs
+from frodo_datasets.synth import SynthConfig, synthesize
+
+CLASSES = ('dining table', 'chair', 'chair')  # cycled: 3 objects = 1 table + 2 chairs, 4 = 2 + 2
+
+
+@dataclass(frozen=True)
+class EvalSet:
+    """A named set of rooms: seeds, object counts and the shape families they draw from."""
+
+    name: str
+    seeds: tuple[int, ...]
+    objects: tuple[int, ...]
+    family_set: str
+    purpose: str
+
+    def scenes(self) -> list[tuple[str, int, int]]:
+        """(scene name, seed, object count) per room."""
+        return [(f'{self.name}-{seed}', seed, n) for seed, n in zip(self.seeds, self.objects)]
+
+
+SETS: dict[str, EvalSet] = {
+    'realcapture': EvalSet('realcapture', tuple(range(9100, 9112)), tuple(3 + i % 2 for i in range(12)), 'all',
+                           'held-out evaluation: report only, never tune'),
+    'realcapture-tune': EvalSet('realcapture-tune', tuple(range(8100, 8106)), tuple(3 + i % 2 for i in range(6)),
+                                'train', 'tuning (training families only)'),
+}
+
+_HANDHELD = preset_kwargs('handheld')
+_PLAIN = dict(scene='walk', frames=60)
+
+
+def _variant(**overrides) -> Callable[[SynthConfig], SynthConfig]:
+    return lambda base: replace(base, **overrides)
+
+
+# Per-frame drift for the 60-frame walk giving the same end-of-sequence drift as the hand-held path's
+# per-second random walk over its ~115 s: per-frame std = per-second std * sqrt(115 / 60).
+_WALK_DRIFT = replace(_HANDHELD['pose_noise'], drift_per_second=False,
+                      drift_rot_deg=_HANDHELD['pose_noise'].drift_rot_deg * np.sqrt(115 / 60),
+                      drift_trans_m=_HANDHELD['pose_noise'].drift_trans_m * np.sqrt(115 / 60))
+
+VARIANTS: dict[str, Callable[[SynthConfig], SynthConfig]] = {
+    'full': _variant(**_HANDHELD),
+    'full100': _variant(**{**_HANDHELD, 'frames': 100}),
+    'plain': _variant(**_PLAIN),
+    'truncation': _variant(scene='handheld', frames=100),
+    'keyframes': _variant(scene='handheld', frames=35),
+    'occlusion': _variant(**_PLAIN, tuck_chairs=_HANDHELD['tuck_chairs'], clutter=_HANDHELD['clutter']),
+    'masks': _variant(**_PLAIN, mask_noise=_HANDHELD['mask_noise']),
+    'drift': _variant(**_PLAIN, pose_noise=_WALK_DRIFT),
+    'camera': _variant(**_PLAIN, realism=_HANDHELD['realism'],
+                       capture=replace(_HANDHELD['capture'], motion_blur_s=0.0, depth_noise=False)),
+}
+
+
+def scene_config(eval_set: EvalSet, seed: int, objects: int, variant: str) -> SynthConfig:
+    """SynthConfig of one room of `eval_set` under `variant`."""
+    base = SynthConfig(objects=objects, classes=CLASSES, seed=seed, family_set=eval_set.family_set)
+    return VARIANTS[variant](base)
+
+
+def _select(items: list, spec: str | None) -> list:
+    """Items picked by a spec like '0-3,7' (indices), or all."""
+    if not spec:
+        return items
+    picked = []
+    for part in spec.split(','):
+        lo, _, hi = part.partition('-')
+        picked += list(range(int(lo), int(hi or lo) + 1))
+    return [items[i] for i in picked if 0 <= i < len(items)]
+
+
+def bag_path(out: Path, variant: str, scene: str) -> Path:
+    return out / 'bags' / variant / f'{scene}.mcap'
+
+
+def build(eval_set: EvalSet, out: Path, variants: list[str], scenes: str | None = None) -> list[Path]:
+    """Write the bags (skipping those already there); returns their paths."""
+    paths = []
+    for variant in variants:
+        for scene, seed, n in _select(eval_set.scenes(), scenes):
+            path = bag_path(out, variant, scene)
+            if not path.is_file():
+                path.parent.mkdir(parents=True, exist_ok=True)
+                started = time.monotonic()
+                tmp = path.with_suffix('.partial.mcap')
+                result = synthesize(scene_config(eval_set, seed, n, variant), tmp, sidecar=False)
+                tmp.rename(path)
+                print(f'{path}: {len(result.scene.objects)} objects ('
+                      + ', '.join(f'{o.class_name}/{o.family}' for o in result.scene.objects)
+                      + f'), {time.monotonic() - started:.0f} s', flush=True)
+            paths.append(path)
+    return paths
+
+
+def _frodo() -> list[str]:
+    exe = Path(sys.executable).with_name('frodo')
+    return [str(exe)] if exe.is_file() else [shutil.which('frodo') or 'frodo']
+
+
+def score(pred_dir: Path, bag: Path) -> dict:
+    """Contract-protocol scores of one run (frodo_common.evaluation), as a JSON-ready dict."""
+    from frodo_common.evaluation import evaluate, load_ground_truth, load_predictions
+
+    gt = load_ground_truth(bag)
+    pred = load_predictions(pred_dir)
+    return evaluate(pred, gt).to_dict()
+
+
+def run(eval_set: EvalSet, out: Path, variants: list[str], scenes: str | None = None, rate: float = 1.0,
+        params: list[str] | None = None, timeout: float = 300.0, code: Path | None = None) -> None:
+    """`frodo run` + scoring on every built bag without a result yet; writes results/<variant>/<scene>.json.
+
+    code: run the graph from this source tree (its src/frodo_* packages first on PYTHONPATH, e.g. a
+    `git archive` of the commit to measure) instead of the installed packages.
+    """
+    env = os.environ.copy()
+    if code is not None:
+        packages = sorted(str(p) for p in (Path(code) / 'src').glob('frodo_*') if p.is_dir())
+        if not packages:
+            raise FileNotFoundError(f'no src/frodo_* packages under {code}')
+        env['PYTHONPATH'] = os.pathsep.join(packages + [env.get('PYTHONPATH', '')]).rstrip(os.pathsep)
+    for variant in variants:
+        for scene, _, _ in _select(eval_set.scenes(), scenes):
+            bag = bag_path(out, variant, scene)
+            result_path = out / 'results' / variant / f'{scene}.json'
+            if result_path.is_file() or not bag.is_file():
+                continue
+            pred_dir = out / 'runs' / variant / scene
+            command = [*_frodo(), 'run', str(bag), '--out', str(pred_dir), '--rate', str(rate), '--no-progress',
+                       '--timeout', str(timeout)]
+            for p in params or []:
+                command += ['--params', p]
+            started = time.monotonic()
+            proc = subprocess.run(command, capture_output=True, text=True, env=env)
+            seconds = time.monotonic() - started
+            if proc.returncode not in (0, 3) or not (pred_dir / 'objects.json').is_file():
+                print(f'{scene} [{variant}]: frodo run failed (exit {proc.returncode}):\n{proc.stderr[-2000:]}',
+                      file=sys.stderr, flush=True)
+                continue
+            report = score(pred_dir, bag)
+            report['run'] = {'exit_code': proc.returncode, 'seconds': seconds, 'rate': rate,
+                             'code': str(code) if code is not None else 'installed'}
+            result_path.parent.mkdir(parents=True, exist_ok=True)
+            result_path.write_text(json.dumps(report, indent=1) + '\n')
+            o = report['overall']
+            print(f'{scene} [{variant}]: {o["n_matched"]}/{o["n_gt"]} found, {o["false_positives"]} FP, '
+                  f'F1 {o["f1"] if o["f1"] is not None else float("nan"):.1f}, {seconds:.0f} s', flush=True)
+
+
+def pool(reports: list[dict]) -> dict:
+    """Pooled scores of several runs: recall %, false positives per scene, median centre error (cm),
+    mean CD (cm) and F1@5cm (%) over matched objects, and F1 with every missed object counted as 0."""
+    pairs = [p for r in reports for p in r['pairs']]
+    n_gt = sum(r['overall']['n_gt'] for r in reports)
+    fp = sum(r['overall']['false_positives'] for r in reports)
+    f1 = [p['f1'] for p in pairs]
+    return {
+        'scenes': len(reports), 'objects': n_gt, 'found': len(pairs),
+        'recall': 100.0 * len(pairs) / n_gt if n_gt else 0.0,
+        'fp_per_scene': fp / len(reports) if reports else 0.0,
+        'median_centre_cm': 100.0 * float(np.median([p['centroid_distance_m'] for p in pairs])) if pairs else None,
+        'mean_cd_cm': float(np.mean([p['cd_cm'] for p in pairs])) if pairs else None,
+        'mean_f1': float(np.mean(f1)) if f1 else None,
+        'mean_f1_all': float(np.sum(f1) / n_gt) if n_gt else None,
+    }
+
+
+def table(eval_set: EvalSet, out: Path, variants: list[str], markdown: bool = False) -> str:
+    """Pooled table, one row per variant with results (partial sets say how many scenes they cover)."""
+    def fmt(v, spec):
+        return '-' if v is None else format(v, spec)
+    rows = []
+    for variant in variants:
+        files = sorted((out / 'results' / variant).glob(f'{eval_set.name}-*.json'))
+        files = [f for f in files if f.stem.rsplit('-', 1)[0] == eval_set.name]
+        if not files:
+            continue
+        s = pool([json.loads(f.read_text()) for f in files])
+        rows.append((variant, s))
+    head = ['variant', 'scenes', 'objects', 'recall %', 'FP/scene', 'median centre cm', 'mean CD cm', 'mean F1@5cm',
+            'F1 (misses = 0)']
+    lines = []
+    for variant, s in rows:
+        lines.append([variant, str(s['scenes']), str(s['objects']), fmt(s['recall'], '.1f'), fmt(s['fp_per_scene'], '.2f'),
+                      fmt(s['median_centre_cm'], '.1f'), fmt(s['mean_cd_cm'], '.2f'), fmt(s['mean_f1'], '.1f'),
+                      fmt(s['mean_f1_all'], '.1f')])
+    if markdown:
+        return '\n'.join(['| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
+                         + ['| ' + ' | '.join(r) + ' |' for r in lines])
+    widths = [max(len(h), *(len(r[i]) for r in lines)) if lines else len(h) for i, h in enumerate(head)]
+    return '\n'.join('  '.join(c.rjust(w) for c, w in zip(r, widths)) for r in [head, *lines])
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog='python -m frodo_datasets.eval_sets', description=__doc__.splitlines()[0])
+    parser.add_argument('command', choices=('build', 'run', 'table', 'list'))
+    parser.add_argument('set', choices=tuple(SETS))
+    parser.add_argument('out', type=Path, nargs='?', default=Path('out/eval_sets'))
+    parser.add_argument('--variants', default='full', help=f'comma-separated, from: {", ".join(VARIANTS)} (or "all")')
+    parser.add_argument('--scenes', default=None, help="room indices, e.g. '0-3,7' (default: all)")
+    parser.add_argument('--rate', type=float, default=1.0, help='playback rate of frodo run (default 1; 0 drops '
+                        'frames on a loaded machine)')
+    parser.add_argument('--params', action='append', default=[], help='parameter YAML for frodo run (repeatable)')
+    parser.add_argument('--code', type=Path, default=None,
+                        help='source tree to run the graph from (e.g. `git archive HEAD src | tar -x -C DIR`)')
+    parser.add_argument('--markdown', action='store_true', help='table as Markdown')
+    args = parser.parse_args(argv)
+    eval_set = SETS[args.set]
+    variants = list(VARIANTS) if args.variants == 'all' else [v.strip() for v in args.variants.split(',') if v.strip()]
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown:
+        parser.error(f'unknown variants {unknown}; known: {", ".join(VARIANTS)}')
+    if args.command == 'list':
+        for scene, seed, n in eval_set.scenes():
+            print(f'{scene}: seed {seed}, {n} objects, families {eval_set.family_set}')
+        print(f'purpose: {eval_set.purpose}')
+    elif args.command == 'build':
+        build(eval_set, args.out, variants, args.scenes)
+    elif args.command == 'run':
+        run(eval_set, args.out, variants, args.scenes, args.rate, args.params, code=args.code)
+    else:
+        print(table(eval_set, args.out, variants, args.markdown))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
