@@ -1,0 +1,336 @@
+"""Benchmarks behind `frodo bench`: one JSON document (and plots) with the figures the READMEs quote.
+
+Sections (each a function returning plain data; a section that cannot run says why instead):
+- `machine`: CPU, cores, load average, torch threads, device, versions, git commit.
+- `decoder`: shape prior decoders (paper Sec. 3): SDF queries per second, point-decoder shapes per second,
+  marching-cubes mesh time; `bag_read`: reading + decoding the demo bag (messages and MB per second).
+- `sparse` / `dense`: optimiser seconds per iteration against the number of views (paper Sec. 4.3, supp.
+  Table "Speed comparison": sparse 0.07 s, dense 4.96 s per iteration), from `bench/bench_sparse.py` and
+  `bench/bench_dense.py` (each optional: skipped with a note when absent).
+- `association`: per-frame latency against the objects in view, association (`add_frame`) and box
+  refinement (`refine_boxes`) separately and together (paper Sec. 4.1).
+- `end_to_end`: `frodo run` of the demo bag: wall time, time after the bag's end until done, per-stage
+  figures from the nodes' diagnostics and objects.json, and the intervals between each node's
+  `/diagnostics` reports (contract: at least 1 Hz).
+"""
+from __future__ import annotations
+
+import importlib.util
+import io
+import os
+import platform
+import subprocess
+import threading
+import time
+from pathlib import Path
+from types import ModuleType
+from typing import Any, Callable
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[3]
+BENCH_DIR = REPO / 'bench'
+DEMO_BAG = REPO / 'bags' / 'demo_walk.mcap'
+# Paper figures (supplementary Table "Speed comparison", 60-frame sequence; hardware not stated there).
+PAPER = {'sparse_s_per_iteration': 0.07, 'dense_s_per_iteration': 4.96, 'pmo_s_per_iteration': 12.59,
+         'sparse_iterations': 200, 'dense_iterations': 100}
+
+
+def load_bench_script(name: str) -> ModuleType | None:
+    """bench/<name>.py of the source tree as a module, or None when it is not there (an installed package)."""
+    path = BENCH_DIR / f'{name}.py'
+    if not path.is_file():
+        return None
+    spec = importlib.util.spec_from_file_location(f'frodo_bench_{name}', path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _timed(fn: Callable[[], Any], repeats: int) -> float:
+    """Median seconds of `repeats` calls of fn."""
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def _stats_ms(values_ms) -> dict[str, float]:
+    a = np.asarray(values_ms, dtype=np.float64)
+    return {'mean': round(float(a.mean()), 3), 'median': round(float(np.median(a)), 3),
+            'p95': round(float(np.percentile(a, 95)), 3), 'max': round(float(a.max()), 3)}
+
+
+# ---------------------------------------------------------------- sections
+def machine_info(device: str) -> dict[str, Any]:
+    """What the figures were measured on."""
+    import torch
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open('/proc/cpuinfo') as fh:
+            cpu = next((line.split(':', 1)[1].strip() for line in fh if line.startswith('model name')), cpu)
+    except OSError:
+        pass
+    try:
+        commit = subprocess.run(['git', '-C', str(REPO), 'rev-parse', '--short', 'HEAD'], capture_output=True,
+                                text=True, timeout=5).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        commit = ''
+    return {'host': platform.node(), 'cpu': cpu, 'logical_cpus': os.cpu_count(),
+            'load_average_1min': round(os.getloadavg()[0], 2), 'torch_threads': torch.get_num_threads(),
+            'device': device, 'gpu': torch.cuda.get_device_name(0) if device.startswith('cuda') else None,
+            'python': platform.python_version(), 'torch': torch.__version__, 'numpy': np.__version__,
+            'commit': commit, 'date_utc': time.strftime('%Y-%m-%d %H:%M', time.gmtime())}
+
+
+def decoder_throughput(device: str, quick: bool) -> dict[str, Any]:
+    """SDF decoder queries/s, point decoder shapes/s and mesh extraction seconds of the shipped prior."""
+    import torch
+    from frodo_shape.prior import ShapePrior
+    prior = ShapePrior.load('furniture', device=device)
+    code = prior.training_codes[0].cpu().numpy()
+    repeats = 2 if quick else 5
+    points = np.random.default_rng(0).uniform(-1, 1, (65536, 3)).astype(np.float32)
+    prior.sdf_numpy(points[:1024], code)  # warm-up
+    sdf_s = _timed(lambda: prior.sdf_numpy(points, code), repeats)
+    codes = prior.training_codes[:16]
+    with torch.no_grad():
+        prior.decode_points(codes[:1])
+        points_s = _timed(lambda: prior.decode_points(codes), repeats)
+    resolution = 32 if quick else 64
+    mesh_s = _timed(lambda: prior.mesh(code, resolution), 1 if quick else 3)
+    return {'sdf_queries_per_s': round(len(points) / sdf_s), 'sdf_batch': len(points),
+            'point_decoder_shapes_per_s': round(len(codes) / points_s, 1), 'points_per_shape': 2048,
+            'mesh_resolution': resolution, 'mesh_s': round(mesh_s, 3)}
+
+
+def bag_read_throughput(bag: Path) -> dict[str, Any]:
+    """Scan + CDR decode + colour conversion of every image of `bag`."""
+    from frodo_common import conversions as conv
+    from frodo_common import topics
+    from frodo_common.bag import BagReader
+    t0 = time.perf_counter()
+    reader = BagReader(bag)
+    messages = list(reader.messages())
+    scan_s = time.perf_counter() - t0
+    for m in messages:
+        msg = m.decode()
+        if m.topic == topics.IMAGE:
+            conv.image_to_rgb(msg)
+    total_s = time.perf_counter() - t0
+    size_mb = sum(len(m.data) for m in messages) / 1e6
+    return {'bag': bag.name, 'messages': len(messages), 'payload_mb': round(size_mb, 2),
+            'scan_s': round(scan_s, 3), 'scan_decode_convert_s': round(total_s, 3),
+            'messages_per_s': round(len(messages) / total_s), 'mb_per_s': round(size_mb / total_s, 1)}
+
+
+def optimiser_sweep(script: str, views: list[int], iterations: int, repeats: int, device: str) -> dict[str, Any]:
+    """`measure(prior, views, iterations, repeats)` of bench/<script>.py for each number of views."""
+    module = load_bench_script(script)
+    if module is None:
+        return {'skipped': f'bench/{script}.py not found'}
+    if not hasattr(module, 'measure'):
+        return {'skipped': f'bench/{script}.py has no measure(prior, views, iterations, repeats) function'}
+    from frodo_shape.prior import ShapePrior
+    prior = ShapePrior.load('furniture', device=device)
+    rows = [module.measure(prior, v, iterations, repeats) for v in views]
+    return {'script': f'bench/{script}.py', 'rows': rows}
+
+
+def association_latency(objects: list[int], frames: int, seed: int = 0) -> dict[str, Any]:
+    """Per-frame association / box refinement latency (ms) on box-world walks with every object in view
+    (the scene of bench/bench_association.py, for several object counts)."""
+    from frodo_association.synthetic import make_scene
+    from frodo_association.tracker import Associator, detections_from_instances
+    rows = []
+    for n in objects:
+        scene = make_scene(n, seed, n_frames=frames, size=(640, 480), extent=2.0, radius=7.5, sweep_deg=90.0,
+                           mask_noise=1, rot_noise_deg=0.3, trans_noise=0.01)
+        dets = [detections_from_instances(f.instances) for f in scene.frames]
+        assoc = Associator()
+        t_assoc, t_refine = [], []
+        for f, (labels, boxes) in zip(scene.frames, dets):
+            t0 = time.perf_counter()
+            assoc.add_frame(f.stamp, f.K, f.T_world_camera_observed, f.size, labels, boxes)
+            t1 = time.perf_counter()
+            assoc.refine_boxes()
+            t_assoc.append(1e3 * (t1 - t0))
+            t_refine.append(1e3 * (time.perf_counter() - t1))
+        rows.append({'objects': n, 'frames': frames,
+                     'detections_per_frame': round(float(np.mean([len(lab) for lab, _ in dets])), 2),
+                     'association_ms': _stats_ms(t_assoc), 'box_refinement_ms': _stats_ms(t_refine),
+                     'total_ms': _stats_ms(np.add(t_assoc, t_refine))})
+    return {'rows': rows}
+
+
+def end_to_end(bag: Path, out: Path, rate: float) -> dict[str, Any]:
+    """`frodo run` of `bag` with a probe recording every /diagnostics report; per-stage figures."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from frodo_bringup.graph import NODES
+    from frodo_bringup.run import run_bag
+    from frodo_bringup.session import RosSession
+    from frodo_common import topics
+    arrivals: dict[str, list[float]] = {}
+    last: dict[str, dict[str, str]] = {}
+    lock = threading.Lock()
+
+    def on_diagnostics(msg: DiagnosticArray) -> None:
+        now = time.monotonic()
+        with lock:
+            for status in msg.status:
+                arrivals.setdefault(status.name, []).append(now)
+                last[status.name] = {kv.key: kv.value for kv in status.values}
+
+    log = io.StringIO()
+    with RosSession('frodo_bench_probe') as probe:
+        probe.node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, on_diagnostics, 100)
+        result = run_bag(bag, out, rate=rate, output=log, progress=False, timeout=600)
+    names = [n.name for n in NODES]
+    intervals = {}
+    with lock:
+        for name in names:
+            times = arrivals.get(name, [])
+            gaps = np.diff(times[1:]) if len(times) > 2 else np.zeros(0)  # the first report comes at start-up
+            intervals[name] = ({'reports': len(times), 'mean_s': round(float(gaps.mean()), 3),
+                                'p95_s': round(float(np.percentile(gaps, 95)), 3),
+                                'max_s': round(float(gaps.max()), 3)} if len(gaps) else {'reports': len(times)})
+        assoc = last.get('association_node', {})
+        shape = last.get('shape_node', {})
+    optimiser_s = [r.get('timings', {}).get('optimiser_s') for r in result.records]
+    optimiser_s = [s for s in optimiser_s if s is not None]
+    bag_s = result.play.seconds if result.play is not None else None
+    return {'bag': bag.name, 'rate': rate, 'exit_code': result.exit_code, 'objects': len(result.records),
+            'wall_s': round(result.seconds, 2), 'playback_s': round(bag_s, 2) if bag_s is not None else None,
+            'stages': {
+                'association_ms_per_frame_mean': assoc.get('association_ms_mean'),
+                'association_ms_per_frame_max': assoc.get('association_ms_max'),
+                'shape_crops_encoded': shape.get('crops_encoded'),
+                'optimiser_s_per_object': [round(s, 2) for s in optimiser_s],
+                'optimiser_s_total': round(float(sum(optimiser_s)), 2)},
+            'diagnostics_intervals': intervals}
+
+
+# ---------------------------------------------------------------- plots
+def write_plots(doc: dict[str, Any], out: Path) -> list[str]:
+    """PNG figures of the sweeps; returns the file names written."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    written = []
+    machine = doc['machine']
+    subtitle = f"{machine['cpu']} ({machine['logical_cpus']} CPUs, load {machine['load_average_1min']}), {machine['device']}"
+    optim = [(k, doc[k]['rows']) for k in ('sparse', 'dense') if 'rows' in doc.get(k, {})]
+    if optim:
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for key, rows in optim:
+            ax.plot([r['views'] for r in rows], [r['ms_per_iteration'] / 1e3 for r in rows], 'o-', label=key)
+            ax.axhline(PAPER[f'{key}_s_per_iteration'], ls='--', lw=0.8, color=ax.lines[-1].get_color(),
+                       label=f'{key}, paper')
+        ax.set(xlabel='views', ylabel='seconds per iteration', yscale='log', title=f'optimiser\n{subtitle}')
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(out / 'optimiser.png', dpi=100)
+        plt.close(fig)
+        written.append('optimiser.png')
+    if 'rows' in doc.get('association', {}):
+        rows = doc['association']['rows']
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for key, label in (('association_ms', 'association'), ('box_refinement_ms', 'box refinement'),
+                           ('total_ms', 'together')):
+            ax.plot([r['objects'] for r in rows], [r[key]['mean'] for r in rows], 'o-', label=f'{label} (mean)')
+        ax.plot([r['objects'] for r in rows], [r['total_ms']['p95'] for r in rows], 'k:', label='together (p95)')
+        ax.set(xlabel='objects in view', ylabel='ms per frame', title=f'association\n{subtitle}')
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(out / 'association.png', dpi=100)
+        plt.close(fig)
+        written.append('association.png')
+    intervals = doc.get('end_to_end', {}).get('diagnostics_intervals', {})
+    named = [(n, v) for n, v in intervals.items() if 'max_s' in v]
+    if named:
+        fig, ax = plt.subplots(figsize=(6, 4))
+        x = np.arange(len(named))
+        ax.bar(x - 0.2, [v['mean_s'] for _, v in named], 0.4, label='mean')
+        ax.bar(x + 0.2, [v['max_s'] for _, v in named], 0.4, label='max')
+        ax.axhline(1.0, ls='--', color='k', lw=0.8, label='contract: 1 s')
+        ax.set_xticks(x, [n for n, _ in named], rotation=15)
+        ax.set(ylabel='seconds between /diagnostics reports', title=f'diagnostics during the demo run\n{subtitle}')
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(out / 'diagnostics.png', dpi=100)
+        plt.close(fig)
+        written.append('diagnostics.png')
+    return written
+
+
+def run_all(out: Path, quick: bool, device: str, sections: list[str], log: Callable[[str], None]) -> dict[str, Any]:
+    """Every requested section, each timed and isolated (an exception is recorded, the others still run)."""
+    out.mkdir(parents=True, exist_ok=True)
+    views = [5, 35] if quick else [5, 10, 20, 35, 60]
+    plan: dict[str, Callable[[], dict[str, Any]]] = {
+        'decoder': lambda: decoder_throughput(device, quick),
+        'bag_read': lambda: bag_read_throughput(DEMO_BAG),
+        'sparse': lambda: optimiser_sweep('bench_sparse', views, 10 if quick else 30, 1 if quick else 3, device),
+        'dense': lambda: optimiser_sweep('bench_dense', views[:2] if quick else views[:3], 2 if quick else 5, 1,
+                                         device),
+        'association': lambda: association_latency([2, 10] if quick else [1, 2, 5, 10, 20], 40 if quick else 200),
+        'end_to_end': lambda: end_to_end(DEMO_BAG, out / 'demo_run', rate=1.0),
+    }
+    doc: dict[str, Any] = {'machine': machine_info(device), 'quick': quick, 'paper': PAPER}
+    for name in sections:
+        log(f'{name} ...')
+        t0 = time.perf_counter()
+        try:
+            doc[name] = plan[name]()
+        except Exception as err:  # noqa: BLE001 - one failing section must not lose the others
+            doc[name] = {'error': f'{type(err).__name__}: {err}'}
+        doc[name]['section_s'] = round(time.perf_counter() - t0, 1)
+        log(f'{name}: done in {doc[name]["section_s"]} s' + (f' ({doc[name]["error"]})' if 'error' in doc[name]
+                                                              else f' ({doc[name]["skipped"]})'
+                                                              if 'skipped' in doc[name] else ''))
+    doc['machine']['load_average_1min_end'] = round(os.getloadavg()[0], 2)
+    doc['plots'] = write_plots(doc, out)
+    return doc
+
+
+SECTIONS = ('decoder', 'bag_read', 'sparse', 'dense', 'association', 'end_to_end')
+
+
+def summary(doc: dict[str, Any]) -> str:
+    """A short human-readable table of the headline figures."""
+    lines = []
+    m = doc['machine']
+    lines.append(f"machine: {m['cpu']}, {m['logical_cpus']} logical CPUs, load {m['load_average_1min']} -> "
+                 f"{m.get('load_average_1min_end')}, torch threads {m['torch_threads']}, device {m['device']}")
+    d = doc.get('decoder', {})
+    if 'sdf_queries_per_s' in d:
+        lines.append(f"decoder: {d['sdf_queries_per_s']:,} SDF queries/s, {d['point_decoder_shapes_per_s']} "
+                     f"point-decoder shapes/s, mesh at {d['mesh_resolution']}^3 in {d['mesh_s']} s")
+    b = doc.get('bag_read', {})
+    if 'messages_per_s' in b:
+        lines.append(f"bag read+decode: {b['messages_per_s']:,} messages/s, {b['mb_per_s']} MB/s ({b['bag']})")
+    for key in ('sparse', 'dense'):
+        sec = doc.get(key, {})
+        if 'rows' in sec:
+            per = ', '.join(f"{r['views']} views {r['ms_per_iteration']:.1f} ms" for r in sec['rows'])
+            lines.append(f"{key} per iteration: {per} (paper: {PAPER[f'{key}_s_per_iteration'] * 1e3:.0f} ms)")
+        elif sec:
+            lines.append(f"{key}: {sec.get('skipped') or sec.get('error')}")
+    a = doc.get('association', {})
+    for r in a.get('rows', []):
+        lines.append(f"association, {r['objects']:2d} objects ({r['detections_per_frame']} in view): "
+                     f"add_frame {r['association_ms']['mean']:.2f} ms, refine_boxes {r['box_refinement_ms']['mean']:.2f}"
+                     f" ms, together {r['total_ms']['mean']:.2f} ms mean / {r['total_ms']['p95']:.2f} ms p95")
+    e = doc.get('end_to_end', {})
+    if 'wall_s' in e:
+        lines.append(f"demo run: exit {e['exit_code']}, {e['objects']} objects, {e['wall_s']} s wall "
+                     f"({e['playback_s']} s playing); association {e['stages']['association_ms_per_frame_mean']} ms "
+                     f"per frame; optimiser {e['stages']['optimiser_s_total']} s over all objects")
+        for name, v in e['diagnostics_intervals'].items():
+            if 'max_s' in v:
+                lines.append(f"  /diagnostics {name}: {v['reports']} reports, every {v['mean_s']} s on average, "
+                             f"p95 {v['p95_s']} s, max {v['max_s']} s")
+    return '\n'.join(lines)

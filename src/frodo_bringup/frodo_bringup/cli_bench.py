@@ -1,0 +1,44 @@
+"""`frodo bench`: measure decoder and bag throughput, optimiser seconds per iteration against views,
+association latency against objects in view and the demo run end to end; write OUT/bench.json + plots."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from frodo_bringup.bench import SECTIONS, run_all, summary
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of `frodo bench`."""
+    parser.add_argument('--out', default='out/bench', metavar='DIR',
+                        help='output directory: bench.json, optimiser.png, association.png, diagnostics.png '
+                             '(default: %(default)s)')
+    parser.add_argument('--quick', action='store_true',
+                        help='fewer views, objects, frames and repeats (a few minutes on 2 CPUs)')
+    parser.add_argument('--only', nargs='+', choices=SECTIONS, metavar='SECTION',
+                        help=f'run only these sections ({", ".join(SECTIONS)}); default: all')
+    parser.add_argument('--device', default='auto', help="torch device: 'auto' (cuda if available), 'cpu', 'cuda'")
+    parser.add_argument('--threads', type=int, default=0, metavar='N',
+                        help='torch CPU threads (default: torch\'s own choice)')
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the benchmarks; 0 when every section ran, 1 when one failed (its error is in the JSON), 2 on bad options."""
+    import torch
+    device = args.device
+    if device == 'auto':
+        device = 'cuda' if torch.cuda.is_available() else 'cpu'
+    if device.startswith('cuda') and not torch.cuda.is_available():
+        print('frodo bench: error: --device cuda but no CUDA device is available', file=sys.stderr)
+        return 2
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+    out = Path(args.out)
+    doc = run_all(out, args.quick, device, list(args.only or SECTIONS),
+                  log=lambda text: print(f'frodo bench: {text}', file=sys.stderr, flush=True))
+    (out / 'bench.json').write_text(json.dumps(doc, indent=2) + '\n')
+    print(summary(doc))
+    print(f'written: {out / "bench.json"}' + ''.join(f', {out / p}' for p in doc['plots']))
+    return 1 if any(isinstance(v, dict) and 'error' in v for v in doc.values()) else 0
