@@ -23,6 +23,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     'convert': ('frodo_datasets.cli_convert', 'Convert a ScanNet, Redwood, TUM RGB-D sequence or your own folder into a contract bag.'),
     'eval': ('frodo_bringup.cli_eval', 'Score objects.json against ground truth (CONTRACT.md protocol).'),
     'train': ('frodo_shape.cli_train', 'Train a shape prior (joint SDF + point decoder).'),
+    'bench': ('frodo_bringup.cli_bench', 'Benchmarks: decoder, optimiser, association, demo run; JSON + plots.'),
     'demo': ('frodo_bringup.cli_demo', 'Reconstruct the demo bag (or a fresh synthetic scene) and score it against its ground truth.'),
 }
 
