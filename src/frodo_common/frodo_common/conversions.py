@@ -160,7 +160,8 @@ def pose_to_matrix(pose: Pose) -> np.ndarray:
     q = np.array([pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w])
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))):
         raise ConversionError('pose contains NaN or inf')
-    norm = float(np.linalg.norm(q))
+    with np.errstate(over='ignore'):   # a huge quaternion's norm is inf: rejected below
+        norm = float(np.linalg.norm(q))
     if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
         raise ConversionError(f'pose quaternion (x, y, z, w) = {q.tolist()} has norm {norm:.4g}, not 1 '
                               f'(tolerance {QUATERNION_NORM_TOLERANCE})')
@@ -218,10 +219,18 @@ def cloud_to_table(msg: PointCloud2) -> np.ndarray:
     for f in msg.fields:
         if f.datatype not in _FIELD_TYPES:
             raise ConversionError(f'field {f.name!r} has unknown datatype {f.datatype}')
+        if f.count < 1 or f.name in names:
+            raise ConversionError(f'field {f.name!r}: count {f.count} < 1 or a repeated name')
+        end = f.offset + np.dtype(_FIELD_TYPES[f.datatype]).itemsize * f.count
+        if end > msg.point_step:
+            raise ConversionError(f'field {f.name!r} ends at byte {end}, beyond point_step {msg.point_step}')
         names.append(f.name)
         formats.append((_FIELD_TYPES[f.datatype], (f.count,)) if f.count > 1 else _FIELD_TYPES[f.datatype])
         offsets.append(f.offset)
-    dtype = np.dtype({'names': names, 'formats': formats, 'offsets': offsets, 'itemsize': msg.point_step})
+    try:
+        dtype = np.dtype({'names': names, 'formats': formats, 'offsets': offsets, 'itemsize': msg.point_step})
+    except (ValueError, TypeError) as err:   # e.g. overlapping fields
+        raise ConversionError(f'PointCloud2 fields do not form a record: {err}') from None
     n = msg.width * msg.height
     if len(msg.data) < n * msg.point_step:
         raise ConversionError(f'PointCloud2 data too short: {len(msg.data)} < {n} x {msg.point_step}')
