@@ -79,3 +79,17 @@ def test_ros_camera_info_yaml(tmp_path):
                     'distortion_coefficients:\n  rows: 1\n  cols: 5\n  data: [0.1, 0, 0, 0, 0]\n')
     K, dist, size = read_intrinsics(path)
     assert K[1, 1] == 501 and dist[0] == 0.1 and size == (640, 480)
+
+
+def test_floor_fit_on_orb_landmarks_without_depth(tmp_path):
+    seq = render_sequence(frames=24, width=160, height=120, seed=3, layout='orbit')  # 15 degrees between views
+    folder = write_folder(seq, tmp_path / 'run', 'tum')
+    shutil.rmtree(folder / 'depth')
+    summary = convert_folder(folder, tmp_path / 'orb.mcap', ConvertOptions(gravity='floor'))
+    assert summary.gravity.startswith('floor plane fit on ORB landmarks'), summary.gravity
+    poses = _poses(read_with_rosbags(tmp_path / 'orb.mcap'))
+    A = poses[0] @ np.linalg.inv(seq.poses[0])  # true world -> converted world, the same for every frame
+    for T, true in zip(poses, seq.poses):
+        assert np.allclose(T, A @ true, atol=1e-5)
+    tilt = np.degrees(np.arccos(np.clip(A[2, 2], -1, 1)))
+    assert tilt < 4.0 and abs(A[2, 3]) < 0.05  # up within 4 degrees, the floor at z = 0 near the origin

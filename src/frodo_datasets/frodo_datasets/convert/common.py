@@ -96,10 +96,11 @@ class ConvertOptions:
     instances_at: 'labels' (colour resized down to the instance images, intrinsics scaled) or 'color'
     (instances resized up to the colour, nearest neighbour) ['labels'];
     gravity: 'auto' (dataset default: none for ScanNet, whose world is z up; else a floor fit when there is
-    depth, else the cameras' mean up), 'none', 'floor', 'camera', or 'up' with `up` = the dataset's up vector;
+    depth, else the cameras' mean up), 'none', 'floor' (on depth, or on ORB landmarks without depth),
+    'camera', or 'up' with `up` = the dataset's up vector;
     landmarks: 'auto' (depth if the dataset has depth, else features), 'depth', 'features', 'none';
     depth, instances, ground_truth: write these optional topics when the dataset has them [True];
-    intrinsics: override (3, 3) K of the colour camera; fps: frame rate for datasets without timestamps [30].
+    fps: frame rate for datasets without timestamps [30] (intrinsics are reader options: see each reader).
     """
 
     views: int | None = None
@@ -118,7 +119,6 @@ class ConvertOptions:
     depth: bool = True
     instances: bool = True
     ground_truth: bool = True
-    intrinsics: np.ndarray | None = None
     fps: float = 30.0
     start_ns: int = DEFAULT_START_NS
     world_frame: str = 'world'

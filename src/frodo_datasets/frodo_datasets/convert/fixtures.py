@@ -349,15 +349,27 @@ CONTRACT_TYPES = {
 def read_with_rosbags(path: Path) -> dict[str, list[tuple[int, object]]]:
     """Read a bag with the independent `rosbags` reader and check what CONTRACT.md "Bags" requires.
 
-    Checks: profile ros2 with rosbag2 metadata (rosbags reads it), contract topic types, offered QoS on every
+    Checks: profile ros2, ros2msg schemas, cdr channels, the rosbag2 metadata record (version 9, message
+    count), contract topic types, offered QoS on every
     channel (ground truth transient local, depth 1), header stamp = log time, frame ids, image encodings and
     sizes matching the camera info, camera info before the first image. Returns {topic: [(log ns, message)]};
     raises AssertionError naming the first violation.
     """
+    import yaml
+    from mcap.reader import make_reader
     from rosbags.highlevel import AnyReader
     from rosbags.interfaces import QosDurability
     from rosbags.typesys import Stores, get_typestore
 
+    with open(path, 'rb') as f:
+        reader = make_reader(f)
+        assert reader.get_header().profile == 'ros2', 'MCAP profile is not ros2'
+        summary = reader.get_summary()
+        assert {s.encoding for s in summary.schemas.values()} == {'ros2msg'}
+        assert {c.message_encoding for c in summary.channels.values()} == {'cdr'}
+        records = {m.name: m.metadata for m in reader.iter_metadata()}
+        info = yaml.safe_load(records['rosbag2']['serialized_metadata'])['rosbag2_bagfile_information']
+        assert info['version'] == 9 and info['message_count'] == summary.statistics.message_count
     with AnyReader([Path(path)], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
         conns = {c.topic: c for c in reader.connections}
         msgs = [(c.topic, t, reader.deserialize(raw, c.msgtype)) for c, t, raw in reader.messages()]

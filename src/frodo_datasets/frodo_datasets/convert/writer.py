@@ -36,7 +36,7 @@ FLOOR_FIT_FRAMES = 15
 
 def output_camera(source: Source, options: ConvertOptions, with_instances: bool) -> tuple[np.ndarray, tuple[int, int]]:
     """(K_out (3, 3), (width, height)) of the written images (see ConvertOptions.resize / instances_at)."""
-    K = np.asarray(options.intrinsics if options.intrinsics is not None else source.K_color, dtype=np.float64)
+    K = np.asarray(source.K_color, dtype=np.float64)
     size = source.color_size
     if isinstance(options.resize, (int, float)) and not isinstance(options.resize, bool):
         if options.resize <= 0:
@@ -68,6 +68,24 @@ def _depth_points(source: Source, frames: list[SourceFrame], max_depth: float) -
     return np.concatenate(pts) if pts else np.zeros((0, 3))
 
 
+def _feature_points(source: Source, frames: list[SourceFrame]) -> np.ndarray:
+    """World points (dataset frame) triangulated from ORB matches of consecutive frames (no depth)."""
+    landmarks = FeatureLandmarks()
+    undistort = None
+    if source.dist is not None and np.any(np.asarray(source.dist) != 0):
+        undistort = cv2.initUndistortRectifyMap(source.K_color, np.asarray(source.dist, np.float64), None,
+                                                source.K_color, source.color_size, cv2.CV_32FC1)
+    for f in frames:
+        try:
+            rgb = f.color()
+        except OSError:
+            continue
+        if undistort is not None:
+            rgb = cv2.remap(rgb, *undistort, interpolation=cv2.INTER_LINEAR)
+        landmarks.add(rgb, source.K_color, f.pose)
+    return landmarks.points()
+
+
 def gravity_alignment(source: Source, frames: list[SourceFrame], options: ConvertOptions) -> tuple[np.ndarray, str]:
     """(T_aligned_dataset (4, 4), description) per `options.gravity` (see frodo_datasets.convert.gravity)."""
     mode = options.gravity
@@ -89,17 +107,16 @@ def gravity_alignment(source: Source, frames: list[SourceFrame], options: Conver
         return align_up(np.asarray(options.up, float)), f'given up {list(options.up)} -> +z'
     up = camera_up(poses)
     if mode == 'floor':
-        if not has_depth:
-            raise ConvertError('gravity mode "floor" needs depth; use --up x,y,z or --gravity camera')
-        points = _depth_points(source, frames, options.max_depth)
+        points = _depth_points(source, frames, options.max_depth) if has_depth else _feature_points(source, frames)
+        what = 'depth' if has_depth else 'ORB landmarks'
         try:
             plane = fit_floor(points, up, np.array([T[:3, 3] for T in poses]))
         except ValueError as err:
             T = align_up(up)
             return T, f'camera mean up (floor fit failed: {err})'
         tilt = np.degrees(np.arccos(np.clip(plane.normal @ up, -1, 1)))
-        return align_floor(plane), (f'floor plane fit (RANSAC, {plane.inliers} inliers; normal {tilt:.1f} deg from '
-                                    f'the cameras\' mean up), floor moved to z = 0')
+        return align_floor(plane), (f'floor plane fit on {what} (RANSAC, {plane.inliers} inliers; normal '
+                                    f'{tilt:.1f} deg from the cameras\' mean up), floor moved to z = 0')
     return align_up(up), 'camera mean up (-y of the optical frames) -> +z'
 
 
@@ -132,7 +149,7 @@ def write_bag(source: Source, output: str | os.PathLike, options: ConvertOptions
     landmarks = (DepthLandmarks(options.landmark_stride, options.landmark_voxel, options.landmark_min_views,
                                 options.max_depth) if landmark_mode == 'depth'
                  else FeatureLandmarks(options.landmark_voxel) if landmark_mode == 'features' else None)
-    K_src = np.asarray(options.intrinsics if options.intrinsics is not None else source.K_color, dtype=np.float64)
+    K_src = np.asarray(source.K_color, dtype=np.float64)
     undistort = None
     if source.dist is not None and np.any(np.asarray(source.dist) != 0):
         undistort = cv2.initUndistortRectifyMap(K_src, np.asarray(source.dist, np.float64), None, K_src,
