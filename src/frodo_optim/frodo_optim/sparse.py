@@ -18,7 +18,8 @@ detections in a bounded set of views:
 - Er (code regulariser, paper ||z||^2 / sigma^2): mean over dimensions of ((z - mu) / sigma)^2 with mu,
   sigma the per-dimension mean and spread of the prior's training codes (the paper's zero-mean prior,
   for codes that are not centred).
-- Ep (photometric consistency) is not implemented (see README "Simplifications").
+- Ep (photometric consistency, paper Eq. 5): Huber colour differences of the points between each view and
+  its next views, visible points only (`photometric.py`), when colour views are passed (weight w_photometric).
 
 Initialisation (paper: "exhaustive search for the best rotation about the gravity direction"):
 translation and scale from the association's 3D box (as `core.place_from_box`: scale = box height over
@@ -38,6 +39,8 @@ import torch
 import torch.nn.functional as F
 from scipy.ndimage import distance_transform_edt
 
+from frodo_optim.photometric import photometric_energy
+
 from frodo_optim import placement
 
 DT_SIZE = 64          # cells per side of a view's distance-transform crop
@@ -56,6 +59,7 @@ class SparseConfig:
     w_silhouette: float = 1.0
     w_geometry: float = 0.5
     w_code: float = 0.01
+    w_photometric: float = 0.0        # Ep (photometric.py); needs refine(..., photometric=ViewBatch)
     geometry_truncation: float = 0.1  # metres
     lr_code: float = 0.005
     lr_translation: float = 0.01      # metres per step (Adam)
@@ -266,13 +270,14 @@ def code_statistics(training_codes) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None = None,
-           config: SparseConfig | None = None, init_yaw: float | None = None) -> SparseResult:
+           config: SparseConfig | None = None, init_yaw: float | None = None, photometric=None) -> SparseResult:
     """Yaw search + joint code/pose optimisation of one object (paper Sec. 4.3).
 
     prior: anything with `decode_points(codes) -> (N, 2048, 3)` torch (differentiable) and `training_codes`.
     code (C,): the fused code; box (centre, size, yaw): the association's box; views: `View`s (at most
     config.max_views are used, spread evenly); slam_points (N, 3) world landmarks or None.
     init_yaw: if given, skip the exhaustive search and start from this yaw (warm start).
+    photometric: optional `photometric.ViewBatch` of the object's colour views for Ep (weight w_photometric).
     Never raises on bad input: returns the box placement with ok=False and a reason.
     """
     cfg = config or SparseConfig()
@@ -314,6 +319,9 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
                  'geometry': _geometry(world, slam_t, cfg.geometry_truncation),
                  'code': (((z - mu) / sigma) ** 2).mean()}
         total = cfg.w_silhouette * terms['silhouette'] + cfg.w_geometry * terms['geometry'] + cfg.w_code * terms['code']
+        if photometric is not None and cfg.w_photometric > 0:   # paper Eq. 5, visibility-aware (photometric.py)
+            terms['photometric'] = photometric_energy(photometric, world, tolerance=0.1 * torch.exp(log_s).detach())
+            total = total + cfg.w_photometric * terms['photometric']
         return total, terms
 
     z0 = torch.as_tensor(code)

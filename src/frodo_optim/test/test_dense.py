@@ -220,3 +220,24 @@ def test_time_limit_bounds_the_stage(prior, scene):
     code0 = (0.7 * scene['code'] + 0.3 * scene['other']).astype(np.float32)
     res = refine_dense(prior, code0, scene['T'], scene['views'], config=cfg)
     assert res.iterations < 200 and 'time limit' in res.reason
+
+
+def test_sparse_stage_uses_the_photometric_term(prior, scene):
+    """Ep in the sparse energy (paper Eq. 4): reported, and the refinement still converges near the truth."""
+    from frodo_optim.sparse import SparseConfig, refine, view_from_mask
+    views = []
+    for v in scene['views']:   # sparse views from the dense views' labels (the crop's object pixels)
+        mask = np.zeros((H, W), bool)
+        u0, v0, u1, _ = v.crop
+        S = v.labels.shape[0]
+        ys, xs = np.nonzero(v.labels == LABEL_OBJECT)
+        px = np.clip(np.round(u0 + (xs + 0.5) * (u1 - u0) / S).astype(int), 0, W - 1)
+        py = np.clip(np.round(v0 + (ys + 0.5) * (u1 - u0) / S).astype(int), 0, H - 1)
+        mask[py, px] = True
+        views.append(view_from_mask(v.K, v.T_world_camera, mask, 96))
+    lo, hi = scene['mesh'].bounds
+    box = ((lo + hi) / 2, hi - lo, 0.7)
+    cfg = SparseConfig(iterations=5, w_photometric=1.0, yaw_candidates=8)
+    res = refine(prior, scene['code'], box, views, config=cfg, photometric=ViewBatch(scene['views']))
+    assert res.ok and 'photometric' in res.energies and 0 <= res.energies['photometric'] < 0.05
+    assert abs(math.atan2(math.sin(res.yaw - 0.7), math.cos(res.yaw - 0.7))) < 0.3
