@@ -1,0 +1,108 @@
+"""Pieces of the public-source development data (frodo_datasets.real_data): recorded trajectory reading and
+placement, world-file poses, intrinsics, and synthesize() rendering a given scene along given poses."""
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from frodo_common.geometry import invert_transform, look_at, make_transform, yaw_matrix
+from frodo_datasets import real_data as rd
+from frodo_datasets.render import Material, RenderObject
+from frodo_datasets.scene import Scene, SceneObject
+from frodo_datasets.synth import SynthConfig, sidecar_path, synthesize
+
+
+def _trajectory(n=40, seed=0):
+    """A hand-held-like path in a z-up world: eye at 1.3-1.7 m looking down at a desk ~1 m ahead."""
+    rng = np.random.default_rng(seed)
+    eyes = np.array([1.2, 0.6, 1.5]) + rng.normal(0, 0.1, (n, 3))
+    return [look_at(e, np.array([0.4, 0.7, 0.7]) + rng.normal(0, 0.05, 3)) for e in eyes]
+
+
+def test_recorded_trajectory_reads_tum_lines_and_a_bare_header(tmp_path):
+    lines = ['timestamp tx ty tz qx qy qz qw',
+             '1305031102.1758 1.3405 0.6266 1.6575 0.6574 0.6126 -0.2949 -0.3248',
+             '1305031102.2159 1.3303 0.6256 1.6464 0.6579 0.6161 -0.2932 -0.3189']
+    path = tmp_path / 'groundtruth.txt'
+    path.write_text('\n'.join(lines) + '\n')
+    stamps, poses = rd.read_recorded_trajectory(path)
+    assert np.allclose(stamps, [1305031102.1758, 1305031102.2159])
+    assert np.allclose(poses[0][:3, 3], [1.3405, 0.6266, 1.6575])
+    R = poses[1][:3, :3]
+    assert np.allclose(R @ R.T, np.eye(3), atol=1e-9) and np.isclose(np.linalg.det(R), 1.0)
+    path.write_text('# ' + '\n'.join(lines) + '\n')  # the original TUM form reads the same
+    assert np.allclose(rd.read_recorded_trajectory(path)[1][1], poses[1])
+
+
+def test_sample_evenly_spreads_over_the_duration():
+    stamps = np.linspace(0.0, 30.0, 3001)
+    poses = [make_transform(None, [t, 0, 0]) for t in stamps]
+    s, p = rd.sample_evenly(stamps, poses, 35)
+    assert len(s) == len(p) == 35 and s[0] == 0.0 and s[-1] == 30.0
+    assert np.allclose(np.diff(s), 30.0 / 34, atol=0.011)
+    assert all(np.isclose(q[0, 3], t) for q, t in zip(p, s))
+
+
+def test_place_trajectory_is_rigid_keeps_heights_and_frames_the_group():
+    poses = _trajectory()
+    centre = np.array([6.5, 1.0, 0.4])
+    moved = rd.place_trajectory(poses, centre, distance=2.5, yaw_deg=-60.0)
+    for i, j in ((0, 1), (3, 17), (10, 39)):  # relative motion unchanged
+        assert np.allclose(invert_transform(poses[i]) @ poses[j], invert_transform(moved[i]) @ moved[j], atol=1e-9)
+    P, Q = np.asarray(poses), np.asarray(moved)
+    assert np.allclose(P[:, 2, 3], Q[:, 2, 3])  # recorded heights kept
+    view = Q[:, :3, 2].mean(axis=0)
+    assert np.isclose(np.degrees(np.arctan2(view[1], view[0])), -60.0, atol=1e-6)
+    offset = centre[:2] - Q[:, :2, 3].mean(axis=0)
+    assert np.isclose(np.linalg.norm(offset), 2.5) and np.allclose(offset / 2.5, [0.5, -np.sqrt(3) / 2])
+
+
+def test_place_trajectory_refuses_a_world_that_is_not_z_up():
+    y_up = make_transform(np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]))  # z-up world seen as y-up
+    with pytest.raises(ValueError, match='not z-up'):
+        rd.place_trajectory([y_up @ T for T in _trajectory()], np.zeros(3), 2.0, 0.0)
+
+
+def test_world_file_poses(tmp_path):
+    world = tmp_path / 'w.world'
+    world.write_text('''<?xml version="1.0" ?><sdf version="1.6"><world name="default">
+      <!-- <model name='Hidden'><include><uri>model://X</uri></include><pose>0 0 0 0 0 0</pose></model> -->
+      <model name='ChairA_01_001'><static>true</static>
+        <include><uri>model://aws_robomaker_residential_ChairA_01</uri></include>
+        <pose frame=''>7.1 0.2 0.02 0 -0 1.5</pose></model>
+      <model name='Ground'><link name='l'/></model>
+    </world></sdf>''')
+    poses = rd.read_world_poses(world)
+    assert list(poses) == ['ChairA_01_001']
+    model, T = poses['ChairA_01_001']
+    assert model == 'aws_robomaker_residential_ChairA_01'
+    assert np.allclose(T[:3, 3], [7.1, 0.2, 0.02]) and np.allclose(T[:3, :3], yaw_matrix(1.5))
+    assert rd.class_of(model) == 'chair' and rd.class_of('aws_robomaker_residential_KitchenTable_01') == 'dining table'
+    with pytest.raises(KeyError):
+        rd.class_of('aws_robomaker_residential_SofaC_01')
+
+
+def test_tum_intrinsics_scale_keeps_pixel_centres():
+    K = rd.tum_intrinsics(320, 240)
+    assert np.allclose([K[0, 0], K[1, 1]], [517.3 / 2, 516.5 / 2])
+    assert np.allclose([K[0, 2], K[1, 2]], [(318.6 + 0.5) / 2 - 0.5, (255.3 + 0.5) / 2 - 0.5])
+    assert np.allclose(rd.tum_intrinsics(640, 480)[:2, 2], [318.6, 255.3])
+
+
+def test_synthesize_renders_the_given_scene_along_the_given_poses(tmp_path):
+    box = trimesh.creation.box((0.5, 0.5, 0.9))
+    chair = SceneObject(1, 'chair', 62, box, make_transform(None, [2.0, 0.0, 0.45]), Material(color=(0.8, 0.2, 0.2)))
+    floor = trimesh.creation.box((8, 8, 0.05))
+    floor.apply_translation((0, 0, -0.025))
+    scene = Scene([chair], [RenderObject(floor, Material(), 0)], (8.0, 8.0), 'walk', 0)
+    poses = [look_at([0.0, y, 1.4], [2.0, 0.0, 0.45]) for y in (-0.3, 0.0, 0.3)]
+    K = rd.tum_intrinsics(64, 48)
+    config = SynthConfig(frames=3, width=64, height=48, slam=False, shadows=False)
+    result = synthesize(config, tmp_path / 'b.mcap', scene=scene, poses=poses, K=K)
+    assert result.scene is scene and np.allclose(result.K, K)
+    assert all(np.allclose(a, b) for a, b in zip(result.true_poses, poses))
+    doc = json.loads(sidecar_path(tmp_path / 'b.mcap').read_text())
+    assert np.allclose(doc['camera']['K'], K) and doc['scene']['objects'][0]['class'] == 'chair'
+    with pytest.raises(ValueError, match='2 poses given for 3 frames'):
+        synthesize(config, tmp_path / 'c.mcap', scene=scene, poses=poses[:2], K=K)
