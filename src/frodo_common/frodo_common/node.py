@@ -136,20 +136,20 @@ class FrodoNode(Node):
         began, or an upstream node or topic is silent. Reported for every node without code of its own.
         """
         values: dict[str, Any] = {}
-        for attr, cache in list(vars(self).items()):
-            if not isinstance(cache, FrameCache):
-                continue
+        caches = [(attr, cache) for attr, cache in list(vars(self).items()) if isinstance(cache, FrameCache)]
+        for attr, cache in caches:
+            prefix = f'{attr}_' if len(caches) > 1 else ''   # keys: frames_missed, missing_parts, duplicate_parts
             count, parts = cache.missed()
-            values[f'{attr}_frames_missed'] = count
+            values[f'{prefix}frames_missed'] = count
             if cache.duplicates:
-                values[f'{attr}_duplicate_parts'] = cache.duplicates
+                values[f'{prefix}duplicate_parts'] = cache.duplicates
             if count:
                 missing = ', '.join(f'{part} ({n})' for part, n in parts.most_common())
-                values[f'{attr}_missing_parts'] = missing
+                values[f'{prefix}missing_parts'] = missing
                 if count > self._missed_reported.get(attr, 0):
                     self._missed_reported[attr] = count
-                    self.report_error(attr, f'{count} frame(s) never complete, missing {missing}: started after '
-                                      'the data began, or an upstream node/topic is silent', counter='warnings')
+                    self.report_error('frame cache', f'{count} frame(s) never complete, missing {missing}: started '
+                                      'after the data began, or an upstream node/topic is silent', counter='warnings')
         return values
 
     def _collect(self) -> tuple[int, str, dict[str, Any]]:

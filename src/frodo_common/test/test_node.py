@@ -7,6 +7,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
+from frodo_common.frame_cache import FrameCache
 from frodo_common.node import FrodoNode
 from frodo_common.params import ParamSpec
 
@@ -87,5 +88,28 @@ def test_diagnostics_keep_their_period_while_every_callback_is_busy():
         assert len(got) >= 6, f'{len(got)} reports during 3 s of busy callback (period 0.25 s)'
         node.destroy_node()
         assert not node._diag_thread.is_alive()
+    finally:
+        rclpy.shutdown()
+
+
+class _Cached(FrodoNode):
+    def __init__(self):
+        super().__init__('cached_node', ())
+        self.cache = FrameCache(('image', 'detections'), stale_after_ns=10)
+
+
+def test_frames_a_node_got_only_in_part_are_reported_with_their_missing_parts():
+    rclpy.init()
+    try:
+        node = _Cached()
+        node.cache.add(0, 'detections', 'd')         # its image never came (the node started late)
+        node.cache.add(100, 'image', 'i')
+        node.cache.add(100, 'detections', 'd')
+        level, _, values = node._collect()
+        assert values['frames_missed'] == 1 and values['missing_parts'] == 'image (1)'
+        assert values['warnings'] == 1 and 'never complete, missing image (1)' in values['last_error']
+        assert level == 1
+        assert node._collect()[2]['warnings'] == 1   # warned once per increase, not per report
+        node.destroy_node()
     finally:
         rclpy.shutdown()
