@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 
 from frodo_bringup.graph import GraphError
+from frodo_bringup.outputs import OBJECTS_FILE
 from frodo_bringup.player import PlayerError
 from frodo_bringup.result_figure import draw_result
 from frodo_bringup.run import EXIT_OK, RECORDING_FILE, run_bag
@@ -81,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
     report = evaluate(pred, gt)
     print(f'\nevaluation against the ground truth of {bag} (CONTRACT.md protocol):')
     print(report.table())
+    print('\n' + stage_table(args.out, report))
     payload = report.to_dict()
     payload['inputs'] = {'pred': str(args.out), 'gt': str(bag)}
     (args.out / EVAL_FILE).write_text(json.dumps(payload, indent=2) + '\n')
@@ -89,6 +91,26 @@ def run(args: argparse.Namespace) -> int:
     if not args.no_viewer and result.exit_code == EXIT_OK:
         print(f'view it: rerun {args.out / RECORDING_FILE}')
     return result.exit_code
+
+
+def stage_table(out: Path, report) -> str:
+    """Optimiser stage each object ended at (fused -> sparse -> dense, paper Sec. 4.3), why, and its F1."""
+    try:
+        records = json.loads((out / OBJECTS_FILE).read_text()).get('objects', [])
+    except (OSError, ValueError):
+        return f'(no {OBJECTS_FILE}: no stage table)'
+    f1 = {p.pred_id: p.f1 for p in report.pairs}
+    header = f'{"id":>4}  {"class":<14} {"stage":<7} {"why":<30} {"optimiser s":>11} {"F1%":>6}'
+    lines = ['optimiser stages per object:', header, '-' * len(header)]
+    for r in records:
+        secs = (r.get('timings') or {}).get('optimiser_s')
+        secs_text = '-' if secs is None else f'{secs:.1f}'
+        f1_text = f'{f1[r["id"]]:.1f}' if r['id'] in f1 else '-'
+        why = (r.get('stage_reason') or '-')[:30]
+        lines.append(f'{r["id"]:>4}  {r["class"][:14]:<14} {r.get("stage") or "-":<7} {why:<30} {secs_text:>11} {f1_text:>6}')
+    counts = {st: sum(r.get('stage') == st for r in records) for st in ('fused', 'sparse', 'dense')}
+    lines.append('stages: ' + ', '.join(f'{n} {st}' for st, n in counts.items()))
+    return '\n'.join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:

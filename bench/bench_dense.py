@@ -1,0 +1,236 @@
+"""Dense stage (paper Sec. 4.3) benchmarks: speed, and the per-stage / per-energy accuracy tables.
+
+    .venv/bin/python bench/bench_dense.py timing [--views 35] [--iterations 10] [--threads 2]
+    .venv/bin/python bench/bench_dense.py stages BAG.mcap [BAG ...] [--ablation] [--json OUT.json]
+
+`timing`: one object (a prior chair rendered from N cameras on a circle, colour + masks), seconds per dense
+iteration and for the whole stage, plus the sparse stage for reference.
+
+`stages` (paper Table 3 analogue; with --ablation also Table 2): the back end alone, on contract bags with
+ground truth. Association is an oracle (each instance mask of /camera/instances is matched to its ground-truth
+object, `frodo_association.evaluate.scene_from_bag`), and each object's 3D box is the ground-truth box
+perturbed (centre N(0, 5 cm), size x U(0.9, 1.1), yaw + U(-10, 10) deg; seeded): what is measured is what the
+optimiser gets out of the same views, not the front end. Per object, up to `--views` (35) views spread over
+the sequence; codes from the shipped encoder on square crops; then
+  vote fusion -> mean fusion (fused stage: box-fit placement) -> sparse (from the mean code) -> dense,
+each scored against the ground-truth mesh with the contract metrics (CD cm, ACC/COMP/F1 at 5 cm).
+--ablation adds, for sparse and sparse+dense: Es+Er, +Ep, +Eg (landmarks; and depth in the dense stage when
+the bag has it), all.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from frodo_common import conversions as conv
+from frodo_common import topics
+from frodo_common.bag import BagReader
+from frodo_common.evaluation import EvalObject, point_metrics, sample_surface
+from frodo_common.geometry import look_at
+from frodo_optim.core import place_from_box
+from frodo_optim.dense import DenseConfig, refine_dense
+from frodo_optim.photometric import ViewBatch, dense_view_from_frame
+from frodo_optim.sparse import SparseConfig, pose_matrix, refine, select_views, view_from_mask
+from frodo_shape.crops import square_crop
+from frodo_shape.fusion import fuse_mean, fuse_vote
+from frodo_shape.prior import ShapePrior
+
+DEPTH_TOPICS = ('/camera/depth/image_raw', '/camera/aligned_depth_to_color/image_raw')  # contract v1.1; synth default
+
+
+def _machine(threads: int) -> str:
+    import os
+    return f'{platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads {threads}'
+
+
+# ------------------------------------------------------------------ timing
+def timing(args) -> None:
+    from frodo_datasets.render import Material, Renderer, RenderObject, intrinsics
+    prior = ShapePrior.load('furniture', device=args.device)
+    chairs = [i for i, c in enumerate(prior.training_classes) if c == 'chair']
+    code = prior.training_codes[chairs[3]].cpu().numpy()
+    mesh = prior.mesh(code, resolution=64)
+    s = 0.5
+    T = pose_matrix(0.7, [0.0, 0.0, -s * mesh.bounds[0, 2]], s)
+    world = mesh.copy().apply_transform(T)
+    renderer = Renderer([RenderObject(world, Material(color=(0.8, 0.3, 0.2), kind='checker', scale=6), label=1)])
+    W, H = 320, 240
+    K = intrinsics(W, H, 60.0)
+    centre = world.bounds.mean(0)
+    dense_views, sparse_views = [], []
+    for k in range(args.views):
+        a = 2 * np.pi * k / args.views
+        Twc = look_at(centre + np.array([2.2 * np.cos(a), 2.2 * np.sin(a), 0.9]), centre)
+        out = renderer.render(K, Twc, W, H, shadows=False)
+        dense_views.append(dense_view_from_frame(K, Twc, out.labels == 1, None, out.rgb))
+        sparse_views.append(view_from_mask(K, Twc, out.labels == 1, 96))
+    other = prior.training_codes[chairs[7]].cpu().numpy()
+    code0 = (0.5 * code + 0.5 * other).astype(np.float32)
+    T0 = pose_matrix(0.8, T[:3, 3] + [0.04, -0.03, 0.0], 0.52)
+    rows = []
+    for config in args.configs:
+        cfg = DenseConfig(max_views=args.views, iterations=args.iterations, max_seconds=1e9,
+                          **json.loads(config) if config else {})
+        res = refine_dense(prior, code0, T0, dense_views, config=cfg)
+        rows.append({'config': config or 'default', 'seconds_per_iteration': round(res.seconds_per_iteration, 3),
+                     'stage_seconds': round(res.seconds, 2), 'iterations': res.iterations, 'improved': res.improved})
+    lo, hi = world.bounds
+    box = ((lo + hi) / 2, hi - lo, 0.7)
+    sp = refine(prior, code0, box, sparse_views, config=SparseConfig(max_views=args.views))
+    print(json.dumps({'views': args.views, 'machine': _machine(torch.get_num_threads()), 'device': str(prior.device),
+                      'dense': rows, 'sparse_seconds': round(sp.seconds, 2)}, indent=1))
+
+
+# ------------------------------------------------------------------ per-stage accuracy
+def _perturbed_box(box, rng):
+    centre, size, yaw = box
+    return (np.asarray(centre) + rng.normal(0, 0.05, 3) * np.array([1, 1, 0.3]),
+            np.asarray(size) * rng.uniform(0.9, 1.1, 3), float(yaw + math.radians(rng.uniform(-10, 10))))
+
+
+def _score(mesh_world, gt_points) -> dict:
+    if mesh_world is None or len(mesh_world.faces) == 0:
+        return {'cd': float('nan'), 'acc': 0.0, 'comp': 0.0, 'f1': 0.0}
+    _, _, cd, acc, comp, f1 = point_metrics(sample_surface(mesh_world, 10000), gt_points)
+    return {'cd': cd, 'acc': acc, 'comp': comp, 'f1': f1}
+
+
+def _objects_of_bag(path: Path, prior, n_views: int, rng):
+    """Per ground-truth object: (class, gt points, box, sparse views, dense views, codes (N, 64), slam points)."""
+    from frodo_association.evaluate import scene_from_bag
+    from frodo_common.categories import category_by_id
+    from frodo_common.evaluation import load_ground_truth_bag
+    scene, _ = scene_from_bag(str(path))
+    gt = load_ground_truth_bag(path)
+    images, depths, slam = {}, {}, None
+    for m in BagReader(path).messages([topics.IMAGE, *DEPTH_TOPICS, topics.SLAM_POINTS]):
+        msg = m.decode()
+        if m.topic == topics.IMAGE:
+            images[conv.stamp_to_ns(msg.header.stamp)] = conv.image_to_rgb(msg)
+        elif m.topic in DEPTH_TOPICS:
+            d = conv.image_to_numpy(msg).astype(np.float32)
+            depths[conv.stamp_to_ns(msg.header.stamp)] = d * 0.001 if msg.encoding == '16UC1' else d
+        else:
+            slam = conv.cloud_to_xyz(msg)
+    out = []
+    for k, obj in enumerate(scene.objects):
+        frames = [(f, lab) for f in scene.frames for lab, g in f.gt.items() if g == k and f.stamp in images]
+        frames = select_views(frames, n_views)
+        if len(frames) < 3:
+            continue
+        sviews, dviews, crops, masks = [], [], [], []
+        for f, lab in frames:
+            mask = f.instances == lab
+            unknown = (f.instances > 0) & ~mask
+            sv = view_from_mask(f.K, f.T_world_camera_observed, mask, 96, unknown, rng)
+            dv = dense_view_from_frame(f.K, f.T_world_camera_observed, mask, unknown, images[f.stamp],
+                                       depths.get(f.stamp), size=96, rng=rng)
+            if sv is None or dv is None:
+                continue
+            sviews.append(sv), dviews.append(dv)
+            ys, xs = np.nonzero(mask)
+            c, m = square_crop(images[f.stamp], mask, (xs.min(), ys.min(), xs.max() + 1, ys.max() + 1))
+            crops.append(c), masks.append(m)
+        name = category_by_id(obj.coco_id).name
+        # ground truth mesh of this object: the one of its class nearest to the box centre
+        cands = [g for g in gt if g.class_name == name]
+        g = min(cands, key=lambda e: np.linalg.norm(e.mesh.bounds.mean(0) - obj.center))
+        out.append({'class': name, 'gt_points': sample_surface(g.mesh, 10000),
+                    'box': _perturbed_box((obj.center, obj.size, obj.yaw), rng), 'sparse_views': sviews,
+                    'dense_views': dviews, 'codes': prior.encode(np.stack(crops), np.stack(masks)), 'slam': slam,
+                    'has_depth': bool(depths)})
+    return out
+
+
+ABLATION = {  # name: (sparse overrides, dense overrides)
+    'Es+Er': ({'w_geometry': 0.0, 'w_photometric': 0.0}, {'w_geometry': 0.0, 'w_photometric': 0.0, 'w_depth': 0.0}),
+    'Es+Er+Ep': ({'w_geometry': 0.0}, {'w_geometry': 0.0, 'w_depth': 0.0}),
+    'Es+Er+Eg': ({'w_photometric': 0.0}, {'w_photometric': 0.0}),
+    'all': ({}, {}),
+}
+
+
+def stages(args) -> None:
+    prior = ShapePrior.load('furniture', device=args.device)
+    sparse_base = json.loads(args.sparse) if args.sparse else {}
+    dense_base = json.loads(args.dense) if args.dense else {}
+    variants = ABLATION if args.ablation else {'all': ({}, {})}
+    rows = []
+    for bag in args.bags:
+        rng = np.random.default_rng(args.seed)
+        objects = _objects_of_bag(Path(bag), prior, args.views, rng)
+        for i, o in enumerate(objects):
+            row = {'bag': Path(bag).name, 'object': i, 'class': o['class'], 'views': len(o['sparse_views'])}
+            centre, size, yaw = o['box']
+            for fusion, code in (('vote', fuse_vote(o['codes'], prior.training_codes.cpu())), ('mean', fuse_mean(o['codes']))):
+                mesh = prior.mesh(code, resolution=64)
+                T, _, _ = place_from_box(mesh, centre, size, yaw)
+                row[f'fused_{fusion}'] = _score(mesh.copy().apply_transform(T), o['gt_points'])
+            code = fuse_mean(o['codes'])
+            for name, (s_over, d_over) in variants.items():
+                scfg = SparseConfig(**{'max_views': args.views, **sparse_base, **s_over})
+                t0 = time.perf_counter()
+                colour = ViewBatch(select_views(o['dense_views'], scfg.max_views)) if scfg.w_photometric > 0 else None
+                sp = refine(prior, code, o['box'], o['sparse_views'], o['slam'], scfg, photometric=colour)
+                t_sparse = time.perf_counter() - t0
+                mesh = prior.mesh(sp.code, resolution=64)
+                row[f'sparse[{name}]'] = _score(mesh.copy().apply_transform(sp.T_world_object), o['gt_points'])
+                dcfg = DenseConfig(**{'max_views': args.views, **dense_base, **d_over})
+                dn = refine_dense(prior, sp.code, sp.T_world_object, o['dense_views'], o['slam'], o['box'], dcfg)
+                dmesh = prior.mesh(dn.code, resolution=64) if dn.improved else mesh
+                row[f'dense[{name}]'] = _score(dmesh.copy().apply_transform(dn.T_world_object), o['gt_points'])
+                row[f'dense[{name}]'].update(improved=dn.improved, seconds=round(dn.seconds, 1),
+                                             s_per_it=round(dn.seconds_per_iteration, 3), sparse_seconds=round(t_sparse, 1))
+            rows.append(row)
+            print(json.dumps({k: ({kk: (round(vv, 2) if isinstance(vv, float) else vv) for kk, vv in v.items()}
+                                  if isinstance(v, dict) else v) for k, v in row.items()}), flush=True)
+    summary = {}
+    keys = [k for k in rows[0] if isinstance(rows[0][k], dict)] if rows else []
+    for k in keys:
+        for cls in ('chair', 'dining table', 'all'):
+            sel = [r[k] for r in rows if cls == 'all' or r['class'] == cls]
+            if sel:
+                summary[f'{k} / {cls}'] = {m: round(float(np.nanmean([s[m] for s in sel])), 2) for m in ('cd', 'acc', 'comp', 'f1')} \
+                    | {'n': len(sel)}
+    for k, v in summary.items():
+        print(f'{k:<36} CD {v["cd"]:6.2f}  ACC {v["acc"]:6.1f}  COMP {v["comp"]:6.1f}  F1 {v["f1"]:6.1f}  (n={v["n"]})')
+    if args.json:
+        Path(args.json).write_text(json.dumps({'machine': _machine(torch.get_num_threads()), 'args': vars(args),
+                                               'rows': rows, 'summary': summary}, indent=1, default=str))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest='cmd', required=True)
+    t = sub.add_parser('timing', help='seconds per dense iteration at N views')
+    t.add_argument('--views', type=int, default=35)
+    t.add_argument('--iterations', type=int, default=10)
+    t.add_argument('--configs', nargs='*', default=[''],
+                   help="DenseConfig overrides as JSON, e.g. '{\"grid_resolution\": 48}' ('' = defaults)")
+    s = sub.add_parser('stages', help='per-stage accuracy (Table 3 analogue), --ablation for Table 2')
+    s.add_argument('bags', nargs='+')
+    s.add_argument('--views', type=int, default=35)
+    s.add_argument('--ablation', action='store_true')
+    s.add_argument('--sparse', default='', help='SparseConfig overrides (JSON)')
+    s.add_argument('--dense', default='', help='DenseConfig overrides (JSON)')
+    s.add_argument('--seed', type=int, default=0)
+    s.add_argument('--json', default='')
+    for p in (t, s):
+        p.add_argument('--threads', type=int, default=1)
+        p.add_argument('--device', default='cpu')
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    return timing(args) if args.cmd == 'timing' else stages(args)
+
+
+if __name__ == '__main__':
+    sys.exit(main() or 0)
