@@ -18,7 +18,7 @@ def test_converted_scannet_scene_is_reconstructed_by_the_graph(tmp_path, capsys)
     seq = render_sequence(frames=30, width=320, height=240, seed=2, layout='walk', objects=2)
     scene = write_scannet(seq, tmp_path / 'scans' / 'scene0000_00', 'sens', invalid_pose=(11,), color_scale=2)
     bag = tmp_path / 'scene0000_00.mcap'
-    code = cli_convert.main(['scannet', str(scene), str(bag), '--fps', '10', '--quiet'])
+    code = cli_convert.main(['scannet', str(scene), str(bag), '--quiet'])  # .sens stamps: 30 Hz
     printed = capsys.readouterr().out
     assert code == 0 and '29 of 30 frames, 320x240' in printed and '1 invalid pose' in printed, printed
     topics = read_with_rosbags(bag)

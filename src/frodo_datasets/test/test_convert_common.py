@@ -37,7 +37,8 @@ def test_scaled_intrinsics_project_the_same_point():
     uv = K @ X / X[2]
     uv2 = K2 @ X / X[2]
     # pixel centres: u' + 0.5 = (u + 0.5) * s
-    assert np.allclose(uv2[0] + 0.5, (uv[0] + 0.5) * 640 / 1296) and np.allclose(uv2[1] + 0.5, (uv[1] + 0.5) * 480 / 968)
+    assert np.allclose(uv2[0] + 0.5, (uv[0] + 0.5) * 640 / 1296)
+    assert np.allclose(uv2[1] + 0.5, (uv[1] + 0.5) * 480 / 968)
 
 
 def _plane_depth(K, size, z0=2.0, slope=0.1):

@@ -238,7 +238,8 @@ def write_scannet_scene_files(seq: RenderedSequence, folder: Path, scene_name: s
         else:
             high = mesh.vertices[:, 2] > mesh.vertices[:, 2].mean()
             seg_indices.append(np.where(high, 200 + obj.label, 100 + obj.label))
-            groups.append({'id': obj.label - 1, 'objectId': obj.label - 1, 'segments': [100 + obj.label, 200 + obj.label],
+            groups.append({'id': obj.label - 1, 'objectId': obj.label - 1,
+                           'segments': [100 + obj.label, 200 + obj.label],
                            'label': table[obj.label][0]})
         meshes.append(mesh)
     floor_object = len(seq.scene.objects)
