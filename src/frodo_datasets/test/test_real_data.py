@@ -106,3 +106,15 @@ def test_synthesize_renders_the_given_scene_along_the_given_poses(tmp_path):
     assert np.allclose(doc['camera']['K'], K) and doc['scene']['objects'][0]['class'] == 'chair'
     with pytest.raises(ValueError, match='2 poses given for 3 frames'):
         synthesize(config, tmp_path / 'c.mcap', scene=scene, poses=poses[:2], K=K)
+
+
+def test_visible_fraction_counts_surface_inside_the_image():
+    box = trimesh.creation.box((0.5, 0.5, 0.9))
+    chair = SceneObject(1, 'chair', 62, box, make_transform(None, [2.0, 0.0, 0.45]), Material())
+    scene = Scene([chair], [], (8.0, 8.0), 'walk', 0)
+    K = rd.tum_intrinsics(320, 240)
+    facing = look_at([0.0, 0.0, 1.0], [2.0, 0.0, 0.45])
+    away = look_at([0.0, 0.0, 1.0], [-2.0, 0.0, 0.45])
+    aside = look_at([0.0, 0.0, 1.0], [2.0, 1.0, 0.45])  # the box at the left image border: partly inside
+    f = rd.visible_fraction(scene, [facing, away, aside], K, 320, 240)
+    assert f[0] == 1.0 and f[1] == 0.0 and 0.05 < f[2] < 0.95
