@@ -176,10 +176,14 @@ def run(eval_set: EvalSet, out: Path, variants: list[str], scenes: str | None = 
             started = time.monotonic()
             proc = subprocess.run(command, capture_output=True, text=True, env=env)
             seconds = time.monotonic() - started
-            if proc.returncode not in (0, 3) or not (pred_dir / 'objects.json').is_file():
-                print(f'{scene} [{variant}]: frodo run failed (exit {proc.returncode}):\n{proc.stderr[-2000:]}',
-                      file=sys.stderr, flush=True)
+            if pred_dir.is_dir():
+                (pred_dir / 'frodo_run.log').write_text(proc.stdout + proc.stderr)
+            if not (pred_dir / 'objects.json').is_file():
+                print(f'{scene} [{variant}]: frodo run wrote no outputs (exit {proc.returncode}):\n'
+                      f'{(proc.stdout + proc.stderr)[-2000:]}', file=sys.stderr, flush=True)
                 continue
+            # Not done in time (exit 3) or nodes stopped by force (exit 1): the outputs written so far are
+            # what a user would get; scored, and the exit code is kept with the result.
             report = score(pred_dir, bag)
             report['run'] = {'exit_code': proc.returncode, 'seconds': seconds, 'rate': rate,
                              'code': str(code) if code is not None else 'installed'}
@@ -187,7 +191,8 @@ def run(eval_set: EvalSet, out: Path, variants: list[str], scenes: str | None = 
             result_path.write_text(json.dumps(report, indent=1) + '\n')
             o = report['overall']
             print(f'{scene} [{variant}]: {o["n_matched"]}/{o["n_gt"]} found, {o["false_positives"]} FP, '
-                  f'F1 {o["f1"] if o["f1"] is not None else float("nan"):.1f}, {seconds:.0f} s', flush=True)
+                  f'F1 {o["f1"] if o["f1"] is not None else float("nan"):.1f}, {seconds:.0f} s, '
+                  f'exit {proc.returncode}', flush=True)
 
 
 def pool(reports: list[dict]) -> dict:
@@ -199,6 +204,7 @@ def pool(reports: list[dict]) -> dict:
     f1 = [p['f1'] for p in pairs]
     return {
         'scenes': len(reports), 'objects': n_gt, 'found': len(pairs),
+        'not_done': sum(r.get('run', {}).get('exit_code', 0) != 0 for r in reports),
         'recall': 100.0 * len(pairs) / n_gt if n_gt else 0.0,
         'fp_per_scene': fp / len(reports) if reports else 0.0,
         'median_centre_cm': 100.0 * float(np.median([p['centroid_distance_m'] for p in pairs])) if pairs else None,
@@ -220,11 +226,11 @@ def table(eval_set: EvalSet, out: Path, variants: list[str], markdown: bool = Fa
             continue
         s = pool([json.loads(f.read_text()) for f in files])
         rows.append((variant, s))
-    head = ['variant', 'scenes', 'objects', 'recall %', 'FP/scene', 'median centre cm', 'mean CD cm', 'mean F1@5cm',
+    head = ['variant', 'scenes', 'not done', 'objects', 'recall %', 'FP/scene', 'median centre cm', 'mean CD cm', 'mean F1@5cm',
             'F1 (misses = 0)']
     lines = []
     for variant, s in rows:
-        lines.append([variant, str(s['scenes']), str(s['objects']), fmt(s['recall'], '.1f'), fmt(s['fp_per_scene'], '.2f'),
+        lines.append([variant, str(s['scenes']), str(s['not_done']), str(s['objects']), fmt(s['recall'], '.1f'), fmt(s['fp_per_scene'], '.2f'),
                       fmt(s['median_centre_cm'], '.1f'), fmt(s['mean_cd_cm'], '.2f'), fmt(s['mean_f1'], '.1f'),
                       fmt(s['mean_f1_all'], '.1f')])
     if markdown:
@@ -244,6 +250,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--rate', type=float, default=1.0, help='playback rate of frodo run (default 1; 0 drops '
                         'frames on a loaded machine)')
     parser.add_argument('--params', action='append', default=[], help='parameter YAML for frodo run (repeatable)')
+    parser.add_argument('--timeout', type=float, default=300.0,
+                        help='frodo run --timeout: seconds to wait for the graph after the bag (default 300)')
     parser.add_argument('--code', type=Path, default=None,
                         help='source tree to run the graph from (e.g. `git archive HEAD src | tar -x -C DIR`)')
     parser.add_argument('--markdown', action='store_true', help='table as Markdown')
@@ -260,7 +268,7 @@ def main(argv: list[str] | None = None) -> int:
     elif args.command == 'build':
         build(eval_set, args.out, variants, args.scenes)
     elif args.command == 'run':
-        run(eval_set, args.out, variants, args.scenes, args.rate, args.params, code=args.code)
+        run(eval_set, args.out, variants, args.scenes, args.rate, args.params, args.timeout, args.code)
     else:
         print(table(eval_set, args.out, variants, args.markdown))
     return 0

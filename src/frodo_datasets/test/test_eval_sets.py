@@ -53,4 +53,4 @@ def test_pool_and_table(tmp_path):
     for i, r in enumerate(reports):
         (tmp_path / 'results' / 'full' / f'realcapture-{9100 + i}.json').write_text(json.dumps(r))
     text = table(SETS['realcapture'], tmp_path, ['full', 'plain'], markdown=True)
-    assert '| full | 2 | 4 | 75.0 | 0.50 | 10.0 | 3.33 | 76.7 | 57.5 |' in text and 'plain' not in text
+    assert '| full | 2 | 0 | 4 | 75.0 | 0.50 | 10.0 | 3.33 | 76.7 | 57.5 |' in text and 'plain' not in text
