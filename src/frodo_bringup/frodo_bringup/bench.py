@@ -17,9 +17,11 @@ from __future__ import annotations
 
 import importlib.util
 import io
+import json
 import os
 import platform
 import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -127,16 +129,38 @@ def bag_read_throughput(bag: Path) -> dict[str, Any]:
 
 
 def optimiser_sweep(script: str, views: list[int], iterations: int, repeats: int, device: str) -> dict[str, Any]:
-    """`measure(prior, views, iterations, repeats)` of bench/<script>.py for each number of views."""
+    """`measure(prior, views, iterations, repeats)` of bench/<script>.py for each number of views; a script
+    with a `timing` subcommand instead (bench/bench_dense.py) is run as a process per number of views."""
     module = load_bench_script(script)
     if module is None:
         return {'skipped': f'bench/{script}.py not found'}
     if not hasattr(module, 'measure'):
-        return {'skipped': f'bench/{script}.py has no measure(prior, views, iterations, repeats) function'}
+        if hasattr(module, 'timing'):
+            return _timing_sweep(script, views, iterations, device)
+        return {'skipped': f'bench/{script}.py has neither measure(prior, views, iterations, repeats) nor timing'}
     from frodo_shape.prior import ShapePrior
     prior = ShapePrior.load('furniture', device=device)
     rows = [module.measure(prior, v, iterations, repeats) for v in views]
     return {'script': f'bench/{script}.py', 'rows': rows}
+
+
+def _timing_sweep(script: str, views: list[int], iterations: int, device: str) -> dict[str, Any]:
+    """`python bench/<script>.py timing --views N --iterations I` for each N; its JSON's first dense row."""
+    import torch
+    rows = []
+    for n in views:
+        proc = subprocess.run([sys.executable, str(BENCH_DIR / f'{script}.py'), 'timing', '--views', str(n),
+                               '--iterations', str(iterations), '--device', device,
+                               '--threads', str(torch.get_num_threads())],
+                              capture_output=True, text=True, timeout=1800)
+        if proc.returncode != 0:
+            raise RuntimeError(f'{script}.py timing --views {n} failed: {proc.stderr.strip()[-500:]}')
+        result = json.loads(proc.stdout[proc.stdout.index('{'):])
+        dense = result['dense'][0]
+        rows.append({'views': n, 'iterations': dense['iterations'],
+                     'ms_per_iteration': round(1e3 * dense['seconds_per_iteration'], 1),
+                     'stage_s': dense['stage_seconds'], 'sparse_stage_s': result.get('sparse_seconds')})
+    return {'script': f'bench/{script}.py timing', 'rows': rows}
 
 
 def association_latency(objects: list[int], frames: int, seed: int = 0) -> dict[str, Any]:
@@ -146,8 +170,9 @@ def association_latency(objects: list[int], frames: int, seed: int = 0) -> dict[
     from frodo_association.tracker import Associator, detections_from_instances
     rows = []
     for n in objects:
-        scene = make_scene(n, seed, n_frames=frames, size=(640, 480), extent=2.0, radius=7.5, sweep_deg=90.0,
-                           mask_noise=1, rot_noise_deg=0.3, trans_noise=0.01)
+        spread = max(1.0, (n / 10) ** 0.5)   # bench_association's room for 10 objects, grown with the count
+        scene = make_scene(n, seed, n_frames=frames, size=(640, 480), extent=2.0 * spread, radius=7.5 * spread,
+                           sweep_deg=90.0, mask_noise=1, rot_noise_deg=0.3, trans_noise=0.01)
         dets = [detections_from_instances(f.instances) for f in scene.frames]
         assoc = Associator()
         t_assoc, t_refine = [], []
@@ -282,8 +307,8 @@ def run_all(out: Path, quick: bool, device: str, sections: list[str], log: Calla
         'decoder': lambda: decoder_throughput(device, quick),
         'bag_read': lambda: bag_read_throughput(DEMO_BAG),
         'sparse': lambda: optimiser_sweep('bench_sparse', views, 10 if quick else 30, 1 if quick else 3, device),
-        'dense': lambda: optimiser_sweep('bench_dense', views[:2] if quick else views[:3], 2 if quick else 5, 1,
-                                         device),
+        'dense': lambda: optimiser_sweep('bench_dense', [5, 10] if quick else [5, 10, 20, 35], 2 if quick else 3,
+                                         1, device),
         'association': lambda: association_latency([2, 10] if quick else [1, 2, 5, 10, 20], 40 if quick else 200),
         'end_to_end': lambda: end_to_end(DEMO_BAG, out / 'demo_run', rate=1.0),
     }
