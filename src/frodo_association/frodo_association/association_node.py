@@ -1,7 +1,10 @@
 """Association node (paper Sec. 4.1; supplement "DP-mean based Line Segment Clustering", "Detection Pruning"):
 per-frame detections -> object ids, 3D boxes and kept flags.
 
-In:  /frodo/detections (16UC1 instance image), /camera/color/camera_info, /camera/pose (matched by stamp).
+In:  /frodo/detections (16UC1 instance image), /camera/color/camera_info, /camera/pose (matched by stamp);
+     optional: /camera/depth/image_raw (contract v1.1, registered, 16UC1 mm or 32FC1 m; kept by stamp, used
+     when it came before its frame's detections) and /slam/points (the latest map): per detection the
+     visible-surface depth inside its mask (`evidence.surface_depths`) fixes depth along its ray.
 Out: /frodo/associations (PointCloud2 table, ASSOCIATION_DTYPE, the frame's stamp; re-sent with the original
      stamp when a frame's ids or kept flags change), /frodo/tracks (latched MarkerArray: one CUBE per published
      object, ns = class, id = object id; DELETE for objects merged away or withdrawn).
@@ -10,7 +13,7 @@ Frames with missing or invalid camera info / pose / detections are counted, repo
 from __future__ import annotations
 
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from dataclasses import fields
 from typing import Any
 
@@ -20,11 +23,13 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from visualization_msgs.msg import MarkerArray
 
 from frodo_association.config import CONFIG_DOC, AssociationConfig
+from frodo_association.evidence import depth_image_to_metres, surface_depths
 from frodo_association.tracker import Associator, detections_from_instances
 from frodo_common import conversions as conv
 from frodo_common import topics
 from frodo_common.categories import category_by_id
 from frodo_common.frame_cache import FrameCache
+from frodo_common.geometry import invert_transform
 from frodo_common.node import FrodoNode, run_node
 from frodo_common.params import ParamSpec
 
@@ -35,6 +40,17 @@ PARAMS: tuple[ParamSpec, ...] = tuple(
               'pose) once a newer frame is complete; then it is dropped and reported.'),
     ParamSpec('camera_info_topic', topics.CAMERA_INFO, 'Camera intrinsics topic.'),
     ParamSpec('pose_topic', topics.POSE, 'Camera pose topic (T_world_camera, optical frame).'),
+    ParamSpec('depth_topic', '/camera/depth/image_raw', "Optional registered depth (16UC1 mm or 32FC1 m) giving "
+              "detections a visible-surface depth; '' disables."),
+    ParamSpec('slam_points_topic', topics.SLAM_POINTS, "Optional SLAM landmarks (whole map per message) giving "
+              "detections without depth a visible-surface depth; '' disables."),
+    ParamSpec('evidence_erode_px', 3, 'Masks are eroded by this many pixels before depth pixels or landmarks inside '
+              'them are used (boundary errors, bleeding).'),
+    ParamSpec('evidence_min_pixels', 20, 'Depth measurements inside the eroded mask needed for a surface depth '
+              '(their median).'),
+    ParamSpec('evidence_min_landmarks', 3, 'Landmarks projecting inside the eroded mask needed for a surface depth.'),
+    ParamSpec('landmark_quantile', 0.25, 'Surface depth from landmarks: this quantile of their depths (the map also '
+              'holds points on the far side and behind the object).'),
 )
 
 
@@ -50,6 +66,10 @@ class AssociationNode(FrodoNode):
         self.cache = FrameCache(('detections', 'pose'), int(p['frame_cache_size']))
         self.waiting: list[int] = []            # complete frames waiting for the first camera info
         self.latency_ms: deque[float] = deque(maxlen=200)   # recent add_frame times
+        self.refine_ms: deque[float] = deque(maxlen=200)    # recent refine_boxes times
+        self.evidence_ms: deque[float] = deque(maxlen=200)  # recent surface-depth times (frames with evidence)
+        self.depth_cache: OrderedDict[int, np.ndarray] = OrderedDict()   # stamp -> depth (m, NaN = none)
+        self.slam_points: np.ndarray | None = None
         self.sent_tracks: dict[int, str] = {}   # object id -> class name of the tracks last published
         self.tracks_pub = self.create_publisher(MarkerArray, topics.TRACKS, topics.LATCHED_QOS)
         self.assoc_pub = self.create_publisher(PointCloud2, topics.ASSOCIATIONS, topics.FRAME_QOS)
@@ -58,6 +78,11 @@ class AssociationNode(FrodoNode):
         self.create_subscription(PoseStamped, p['pose_topic'], self.guarded(self._on_pose, 'pose'), topics.FRAME_QOS)
         self.create_subscription(CameraInfo, p['camera_info_topic'], self.guarded(self._on_camera_info, 'camera_info'),
                                  topics.FRAME_QOS)
+        if p['depth_topic']:
+            self.create_subscription(Image, p['depth_topic'], self.guarded(self._on_depth, 'depth'), topics.FRAME_QOS)
+        if p['slam_points_topic']:
+            self.create_subscription(PointCloud2, p['slam_points_topic'], self.guarded(self._on_slam_points, 'slam_points'),
+                                     topics.FRAME_QOS)
 
     # ------------------------------------------------------------ inputs
     def _on_detections(self, msg: Image) -> None:
@@ -67,6 +92,41 @@ class AssociationNode(FrodoNode):
     def _on_pose(self, msg: PoseStamped) -> None:
         self.count('poses_received')
         self._add(conv.stamp_to_ns(msg.header.stamp), 'pose', msg)
+
+    def _on_depth(self, msg: Image) -> None:
+        """Registered depth, kept by stamp (the latest 64) until its frame is associated."""
+        self.count('depth_received')
+        if msg.encoding not in ('16UC1', '32FC1'):
+            raise conv.ConversionError(f'depth encoding must be 16UC1 (mm) or 32FC1 (m), got {msg.encoding!r}')
+        self.depth_cache[conv.stamp_to_ns(msg.header.stamp)] = depth_image_to_metres(conv.image_to_numpy(msg))
+        while len(self.depth_cache) > 64:
+            self.depth_cache.popitem(last=False)
+
+    def _on_slam_points(self, msg: PointCloud2) -> None:
+        points = conv.cloud_to_xyz(msg)
+        self.slam_points = points[np.isfinite(points).all(1)] if len(points) else points
+        self.count('slam_maps_received')
+
+    def _surface_depths(self, stamp: int, instances: np.ndarray, labels: np.ndarray, K: np.ndarray,
+                        T_world_camera: np.ndarray) -> np.ndarray | None:
+        """Visible-surface depth per detection from this frame's depth image and the latest landmarks, or None
+        when neither is there. A depth image of the wrong size is reported and not used."""
+        depth = self.depth_cache.pop(stamp, None)
+        if depth is not None and depth.shape != instances.shape:
+            self.report_error(f'frame {stamp}', f'depth {depth.shape[1]}x{depth.shape[0]} is not registered to the '
+                              f'detections {instances.shape[1]}x{instances.shape[0]}; not used', counter='warnings')
+            depth = None
+        points = self.slam_points if self.slam_points is not None and len(self.slam_points) else None
+        if (depth is None and points is None) or len(labels) == 0:
+            return None
+        p = self.params
+        t0 = time.perf_counter()
+        surface = surface_depths(instances, labels, K, invert_transform(T_world_camera), depth, points,
+                                 int(p['evidence_erode_px']), int(p['evidence_min_pixels']),
+                                 int(p['evidence_min_landmarks']), float(p['landmark_quantile']))
+        self.evidence_ms.append(1e3 * (time.perf_counter() - t0))
+        self.count('frames_with_depth' if depth is not None else 'frames_with_landmarks')
+        return surface
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         K = conv.camera_info_to_K(msg)           # raises on invalid intrinsics: reported, the old info stays
@@ -121,14 +181,17 @@ class AssociationNode(FrodoNode):
             self.cache.frames.pop(stamp, None)
             return
         labels, boxes = detections_from_instances(instances)
+        surface = self._surface_depths(stamp, instances, labels, K, T_world_camera)
         t0 = time.perf_counter()
-        update = self.associator.add_frame(stamp, K, T_world_camera, size, labels, boxes)
+        update = self.associator.add_frame(stamp, K, T_world_camera, size, labels, boxes, surface)
         self.latency_ms.append(1e3 * (time.perf_counter() - t0))
         self.cache.frames.pop(stamp, None)       # processed: free the images (the stamp stays marked complete)
         frame_id = self.params['world_frame']
         self.assoc_pub.publish(self._table_msg(update.table, stamp, frame_id))
         self.count('frames_published')
+        t0 = time.perf_counter()
         refined = self.associator.refine_boxes()
+        self.refine_ms.append(1e3 * (time.perf_counter() - t0))
         self._republish(update.republish + [s for s in refined.republish if s not in update.republish], frame_id)
         self.count('merges', sum(1 for v in update.removed.values() if v >= 0))
         if update.tracks_changed or refined.tracks_changed:
@@ -163,11 +226,13 @@ class AssociationNode(FrodoNode):
 
     def diagnostic_values(self) -> dict[str, Any]:
         lat = self.latency_ms
+        fmt = lambda d, f: f'{f(d):.2f}' if d else 'n/a'       # noqa: E731
         return {'objects': len(self.associator.confirmed_tracks()), 'clusters': len(self.associator.tracks),
                 'detections': len(self.associator.rows), 'frames_cached': len(self.cache),
                 'frames_unmatched': self.cache.evicted_incomplete,
-                'association_ms_mean': f'{np.mean(lat):.2f}' if lat else 'n/a',
-                'association_ms_max': f'{np.max(lat):.2f}' if lat else 'n/a'}
+                'association_ms_mean': fmt(lat, np.mean), 'association_ms_max': fmt(lat, np.max),
+                'refine_ms_mean': fmt(self.refine_ms, np.mean), 'refine_ms_max': fmt(self.refine_ms, np.max),
+                'evidence_ms_mean': fmt(self.evidence_ms, np.mean)}
 
 
 def main(args=None) -> int:

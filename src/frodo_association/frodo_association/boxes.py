@@ -16,12 +16,24 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
 from frodo_common.geometry import box_corners
 
 # Corner offsets of a unit box, in the corner order of frodo_common.geometry.box_corners.
+# Typical upright dimensions (long side, short side, height) in metres per COCO class: common real furniture
+# (ScanNet/Redwood chairs 0.45-0.6 m wide, 0.8-1 m tall; dining tables 0.72-0.78 m tall). Used as the class
+# shape prior of the box fit and to complete truncated detections; frodo_common.categories gives the range of
+# the largest extent.
+CLASS_SHAPES: dict[int, tuple[float, float, float]] = {
+    62: (0.5, 0.5, 0.9),      # chair
+    63: (1.9, 0.9, 0.85),     # couch
+    65: (2.0, 1.6, 0.6),      # bed
+    67: (1.5, 0.9, 0.75),     # dining table
+}
+
 _BOX_SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64) / 2
 
 
@@ -68,6 +80,18 @@ class Box3D:
     def corners(self) -> np.ndarray:
         """(8, 3) world corners."""
         return box_corners(self.center, self.size, self.yaw)
+
+
+def footprint_overlap(a: Box3D, b: Box3D) -> float:
+    """Area of the intersection of two upright boxes' floor footprints (rotated rectangles) over the smaller
+    footprint's area, in [0, 1]."""
+    rects = [((float(x.center[0]), float(x.center[1])), (float(x.size[0]), float(x.size[1])), float(np.degrees(x.yaw)))
+             for x in (a, b)]
+    kind, pts = cv2.rotatedRectangleIntersection(*rects)
+    if kind == cv2.INTERSECT_NONE or pts is None:
+        return 0.0
+    inter = cv2.contourArea(cv2.convexHull(pts))
+    return float(inter / max(min(a.size[0] * a.size[1], b.size[0] * b.size[1]), 1e-9))
 
 
 def canonical_yaw(size: np.ndarray, yaw: float) -> tuple[np.ndarray, float]:
@@ -127,7 +151,8 @@ def _box_projection(p: np.ndarray, R: np.ndarray, t: np.ndarray, f: np.ndarray, 
 
 def fit_box(K: np.ndarray, T_camera_world: np.ndarray, boxes: np.ndarray, edge_valid: np.ndarray,
             size_range: tuple[float, float], init_center: np.ndarray, floor_height: float | None = None,
-            size_prior_weight: float = 0.05, anchor_weight: float = 1.0, init: Box3D | None = None) -> Box3D:
+            size_prior_weight: float = 0.05, anchor_weight: float = 1.0, init: Box3D | None = None,
+            shape: tuple[float, float, float] | None = None, height_prior_weight: float = 0.0) -> Box3D:
     """Upright 3D box whose projection matches 2D detection boxes over several views.
 
     K: (V, 3, 3); T_camera_world: (V, 4, 4); boxes: (V, 4) detection boxes; edge_valid: (V, 4) bool, False
@@ -135,11 +160,17 @@ def fit_box(K: np.ndarray, T_camera_world: np.ndarray, boxes: np.ndarray, edge_v
     floor_height: the box bottom is fixed at this z when given; init: a previous box to start from.
     Residuals: per valid edge, (projected box edge - detection edge) / detection box diagonal, soft-L1
     loss; plus size_prior_weight * log(size / prior) per dimension with prior = sqrt(S_min * S_max), and
-    anchor_weight * (centre - init_center) (metres) per free centre coordinate.
+    anchor_weight * (centre - init_center) (metres) per free centre coordinate. With a class `shape` (long, short,
+    height) and height_prior_weight > 0 the prior is (sqrt(long * short), sqrt(long * short), height) instead, the
+    height residual weighted by height_prior_weight.
     Analytic Jacobian (the extreme corner of each edge). Yaw starts at 0 and pi/4 (a box is symmetric
     under quarter turns) unless `init` is given.
     """
     prior = np.full(3, np.sqrt(size_range[0] * size_range[1]))
+    weights = np.full(3, size_prior_weight)
+    if shape is not None and height_prior_weight > 0:
+        prior = np.array([np.sqrt(shape[0] * shape[1])] * 2 + [shape[2]])
+        weights[2] = height_prior_weight
     diag = np.maximum(np.hypot(boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]), 1.0)
     R = T_camera_world[:, :3, :3]
     t = T_camera_world[:, :3, 3]
@@ -148,14 +179,14 @@ def fit_box(K: np.ndarray, T_camera_world: np.ndarray, boxes: np.ndarray, edge_v
     on_floor = floor_height is not None
     n_center = 2 if on_floor else 3
     prior_jac = np.zeros((3 + n_center, n_center + 4))
-    prior_jac[:3, n_center:n_center + 3] = size_prior_weight * np.eye(3)
+    prior_jac[:3, n_center:n_center + 3] = np.diag(weights)
     prior_jac[3:, :n_center] = anchor_weight * np.eye(n_center)
     anchor = np.asarray(init_center, dtype=np.float64)[:n_center]
 
     def residuals(p):
         proj = _box_projection(p, R, t, f, c, floor_height)
         r = ((proj - boxes) / diag[:, None])[edge_valid]
-        return np.concatenate([r, size_prior_weight * (p[n_center:n_center + 3] - np.log(prior)),
+        return np.concatenate([r, weights * (p[n_center:n_center + 3] - np.log(prior)),
                                anchor_weight * (p[:n_center] - anchor)])
 
     def jacobian(p):

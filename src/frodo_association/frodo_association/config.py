@@ -19,12 +19,14 @@ class AssociationConfig:
     cluster_penalty: float = 0.4
     merge_distance: float = 0.25
     full_pass_every: int = 20
+    full_pass_distance: float = 1.5
     max_em_iterations: int = 10
     reassign_ratio: float = 0.5
     depth_margin: float = 0.3
     min_depth: float = 0.3
     max_depth: float = 20.0
     center_prior_weight: float = 1e-3
+    whole_view_centers: bool = True
     max_center_segments: int = 64
     min_track_views: int = 3
     min_hit_ratio: float = 0.6
@@ -47,6 +49,13 @@ class AssociationConfig:
     occlusion_iou: float = 0.6
     overlap_iou: float = 0.4
     border_margin: float = 2.0
+    surface_slack: float = 0.1
+    evidence_opens_clusters: bool = True
+    complete_truncated: bool = True
+    confirm_views: int = 3
+    view_separation: float = 0.3
+    height_prior_weight: float = 0.0
+    box_overlap_merge: float = 0.3
 
 
 CONFIG_DOC: dict[str, str] = {
@@ -54,6 +63,8 @@ CONFIG_DOC: dict[str, str] = {
                        'class opens a new cluster (paper: 0.4).',
     'merge_distance': 'Clusters of one class whose centres come closer than this (m) are merged; the older id survives.',
     'full_pass_every': 'Frames between full DP-means EM passes over all segments (0: never).',
+    'full_pass_distance': 'A full pass also runs once the camera has travelled this far (m) since the last one '
+                          '(sparse keyframes: 20 keyframes can span a whole sequence; 0: off).',
     'max_em_iterations': 'Maximum EM iterations of a full pass.',
     'reassign_ratio': 'Full-pass hysteresis: a detection moves to another cluster only if that centre is closer '
                       'than this times the distance to its own (1: plain DP-means re-assignment).',
@@ -62,6 +73,9 @@ CONFIG_DOC: dict[str, str] = {
     'max_depth': 'Segments end no farther than this (m, optical depth).',
     'center_prior_weight': 'Weight (per segment) pulling a cluster centre towards the mean segment midpoint; '
                            'regularises near-parallel segments.',
+    'whole_view_centers': 'A cluster that merged one opened by truncated detections with an ordinary one estimates '
+                          'its centre from its untruncated detections once it has min_track_views of them (box-centre '
+                          'rays of truncated detections are biased towards the visible part).',
     'max_center_segments': 'Segments per cluster used to re-estimate its centre, evenly spread over its detections.',
     'min_track_views': 'Reliable detections (not truncated, at least min_box_width x min_box_height, scaled) a '
                        'cluster needs before it is published as an object.',
@@ -101,5 +115,20 @@ CONFIG_DOC: dict[str, str] = {
     'overlap_iou': 'Pruning (3): detections whose IoU with another object\'s projected 3D box is above this are '
                    'rejected.',
     'border_margin': 'A box edge within this many pixels of the image border is truncated (not used in box fits).',
+    'surface_slack': 'With a visible-surface depth d_s for a detection (depth image or landmarks), its segment is '
+                     'the ray between optical depths d_s - surface_slack and d_s + the class\'s half horizontal '
+                     'diagonal (m) instead of the size-derived interval.',
+    'evidence_opens_clusters': 'A truncated detection with a visible-surface depth is reliable: it opens clusters '
+                               'and counts towards publishing (its segment is short and its ray completed).',
+    'complete_truncated': 'With a visible-surface depth, a box cut by the image border on one side is extended on '
+                          'that side to the class\'s typical projected size before its centre ray is taken.',
+    'confirm_views': 'Keyframe rule: a cluster with min_track_views reliable detections and the hit ratio whose '
+                     'centre left the view before confirm_window frames is published when its detections come from '
+                     'this many distinct viewpoints (camera centres at least view_separation apart) (0: off).',
+    'view_separation': 'Camera centres closer than this (m) count as one viewpoint for confirm_views.',
+    'height_prior_weight': 'Weight of the class height prior (log-height residual against the typical height of '
+                           'the class, CLASS_SHAPES) in the box fit; the horizontal sizes keep size_prior_weight.',
+    'box_overlap_merge': 'At full passes, two published objects of one class whose 3D box footprints overlap by at '
+                         'least this fraction of the smaller footprint are merged (the older id survives; > 1: off).',
 }
 assert set(CONFIG_DOC) == {f.name for f in fields(AssociationConfig)}

@@ -33,15 +33,18 @@ from scipy.optimize import linear_sum_assignment
 
 from frodo_association.boxes import box_iou, canonical_yaw, clip_boxes
 from frodo_association.config import AssociationConfig
+from frodo_association.evidence import depth_image_to_metres, surface_depths
 from frodo_association.tracker import Associator
 from frodo_association.synthetic import (BoxObject, SynthFrame, SynthScene, add_noise, make_furniture_scene,
                                         make_scene)
+from frodo_common.geometry import invert_transform
 from frodo_detection.core import FilterConfig, filter_instances, instance_boxes
 
 LAYOUTS: dict[str, dict] = {
     'walk': {},                                                   # 320x240, ~3.6 m arc of 240 deg, 3.2 m square
     'dense': {'size': (640, 480), 'extent': 2.0, 'radius': 7.5, 'sweep_deg': 90.0},   # many objects, far
     'furniture': {},                                              # rendered procedural chairs/tables, 640x480
+    'handheld': {},                                               # kitchen keyframes, close range (handheld.py)
 }
 CONDITIONS: dict[str, dict] = {
     'clean': {},
@@ -49,6 +52,26 @@ CONDITIONS: dict[str, dict] = {
     'pose noise 0.5deg/2cm': {'rot_noise_deg': 0.5, 'trans_noise': 0.02},
     'all noise + 10% misses': {'mask_noise': 2, 'rot_noise_deg': 0.5, 'trans_noise': 0.02, 'miss_rate': 0.1},
 }
+_REAL_MASKS = {'boundary_px': 4, 'hole_prob': 0.3, 'bleed_prob': 0.3, 'miss_rate': 0.1}
+_DRIFT = {'drift_m': 0.05, 'drift_deg': 2.0}
+HANDHELD_CONDITIONS: dict[str, dict] = {
+    'clean': {},
+    'real masks': _REAL_MASKS,
+    'pose drift': _DRIFT,
+    'real-like': {**_REAL_MASKS, **_DRIFT},
+}
+"""Handheld keyframe conditions (`handheld.make_handheld_scene` arguments): real masks = edges +-4 px, holes,
+bleeding, 10 % misses; pose drift = about 5 cm and 2 deg at the end of the 1000-frame sequence."""
+HANDHELD_VARIANTS: dict[str, dict] = {
+    'base': {},
+    'far range 1.5-3 m (less truncation)': {'near': 1.5, 'far': 3.0},
+    'chairs out (less occlusion)': {'push': (-0.15, 0.0)},
+    'chairs pushed under': {'push': (0.3, 0.5)},
+    '15 keyframes': {'n_keyframes': 15},
+    '120 keyframes': {'n_keyframes': 120},
+}
+"""Layout variants of the handheld kitchen, one factor changed from 'base' (35 keyframes, 0.5-1.6 m beyond the
+table, chairs pushed in by -0.1..0.35 m, 4 clutter boxes on the table)."""
 
 
 @dataclass
@@ -72,8 +95,10 @@ class SceneResult:
     refine_ms: list = None
 
 
-def run_scene(scene: SynthScene, cfg: AssociationConfig, filt: FilterConfig) -> SceneResult:
-    """Associate every frame of a scene and score the final state against its ground truth."""
+def run_scene(scene: SynthScene, cfg: AssociationConfig, filt: FilterConfig,
+              evidence: tuple[str, ...] = ('depth', 'landmarks')) -> SceneResult:
+    """Associate every frame of a scene and score the final state against its ground truth. `evidence`: which of
+    the scene's depth images and landmarks (where it has them) give the detections' surface depths."""
     assoc = Associator(cfg)
     gt_rows: list[int] = []
     vis_rows: list[float] = []
@@ -82,8 +107,13 @@ def run_scene(scene: SynthScene, cfg: AssociationConfig, filt: FilterConfig) -> 
         _, dets = filter_instances(frame.instances, filt)
         labels = np.array([d.label for d in dets], dtype=np.int64)
         boxes = np.array([d.bbox for d in dets], dtype=np.float64).reshape(-1, 4)
+        surface = None
+        if (frame.depth is not None and 'depth' in evidence) or (scene.landmarks is not None and 'landmarks' in evidence):
+            surface = surface_depths(frame.instances, labels, frame.K, invert_transform(frame.T_world_camera_observed),
+                                     depth_image_to_metres(frame.depth) if 'depth' in evidence and frame.depth
+                                     is not None else None, scene.landmarks if 'landmarks' in evidence else None)
         t0 = time.perf_counter()
-        assoc.add_frame(frame.stamp, frame.K, frame.T_world_camera_observed, frame.size, labels, boxes)
+        assoc.add_frame(frame.stamp, frame.K, frame.T_world_camera_observed, frame.size, labels, boxes, surface)
         t1 = time.perf_counter()
         assoc.refine_boxes()
         res.assoc_ms.append(1e3 * (t1 - t0))
@@ -143,7 +173,9 @@ def summarise(results: list[SceneResult]) -> dict:
         'purity': s('correct') / max(s('associated'), 1), 'assigned': s('correct') / max(s('detections'), 1),
         'completeness': s('recovered') / max(s('objects'), 1), 'duplicates': s('duplicates'),
         'false_tracks': s('false_tracks'),
-        'center_err_m': ms(cat('center_err')), 'size_err_m': ms(cat('size_err')), 'yaw_err_deg': ms(cat('yaw_err')),
+        'center_err_m': ms(cat('center_err')),
+        'center_err_median_m': float(np.median(cat('center_err'))) if len(cat('center_err')) else float('nan'),
+        'false_per_scene': (s('false_tracks') + s('duplicates')) / max(len(results), 1), 'size_err_m': ms(cat('size_err')), 'yaw_err_deg': ms(cat('yaw_err')),
         'kept_frac': s('kept') / max(s('associated'), 1), 'kept_vis': ms(kept_vis), 'pruned_vis': ms(pruned_vis),
         'bad_kept_frac': float(np.mean(kept_vis < 0.7)) if len(kept_vis) else float('nan'),
         'assoc_ms_mean': ms(cat('assoc_ms')), 'refine_ms_mean': ms(cat('refine_ms')),
@@ -169,7 +201,7 @@ def scene_from_bag(path: str, min_iou: float = 0.3) -> tuple[SynthScene, list[st
     from frodo_common import topics
     from frodo_common.bag import BagReader
     from frodo_common.categories import BY_NAME
-    from frodo_common.geometry import invert_transform, project_points
+    from frodo_common.geometry import project_points
 
     reader = BagReader(path)
     notes = list(reader.problems)

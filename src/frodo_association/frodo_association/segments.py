@@ -139,3 +139,43 @@ def gated_assignment(cost: np.ndarray, gate: float) -> np.ndarray:
     ok = cost[rows, cols] < gate
     out[rows[ok]] = cols[ok]
     return out
+
+
+def ray_segments(boxes: np.ndarray, K: np.ndarray, T_world_camera: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """World segments (N, 2, 3) on the rays through the box centres between optical depths depth (N, 2)."""
+    centres = np.stack([(boxes[:, 0] + boxes[:, 2]) / 2, (boxes[:, 1] + boxes[:, 3]) / 2], axis=1)
+    d_cam = np.stack([(centres[:, 0] - K[0, 2]) / K[0, 0], (centres[:, 1] - K[1, 2]) / K[1, 1],
+                      np.ones(len(centres))], axis=1)
+    pts_cam = d_cam[:, None, :] * depth[:, :, None]
+    return pts_cam @ T_world_camera[:3, :3].T + T_world_camera[:3, 3]
+
+
+def surface_intervals(surface_depth: np.ndarray, extent: np.ndarray, slack: float, min_depth: float,
+                      max_depth: float) -> np.ndarray:
+    """Optical-depth interval (N, 2) of the object centres behind visible surfaces at depth surface_depth (N,):
+    [d_s - slack, d_s + extent] (extent (N,): how far behind its visible surface a centre can be), clamped."""
+    d = np.stack([surface_depth - slack, surface_depth + extent], axis=1)
+    return np.clip(d, min_depth, max_depth)
+
+
+def complete_truncated_boxes(boxes: np.ndarray, edge_valid: np.ndarray, K: np.ndarray, center_depth: np.ndarray,
+                             shapes: np.ndarray) -> np.ndarray:
+    """Boxes (N, 4) extended beyond the image border on truncated sides (issue 9: truncation-aware rays).
+
+    A box cut on one side of an axis (edge_valid (N, 4) False there, the opposite edge valid) is extended on the
+    cut side to the class's typical projected extent at the centre's optical depth center_depth (N,):
+    width fx * sqrt(long * short) / d, height fy * height / d (shapes (N, 3) = (long, short, height)); it is
+    never shrunk. A box cut on both sides of an axis, or with NaN depth, keeps that axis.
+    """
+    out = boxes.copy()
+    ok = np.isfinite(center_depth) & (center_depth > 0)
+    d = np.where(ok, center_depth, 1.0)
+    expect = np.stack([K[0, 0] * np.sqrt(shapes[:, 0] * shapes[:, 1]) / d, K[1, 1] * shapes[:, 2] / d], axis=1)
+    for axis in (0, 1):
+        lo, hi = edge_valid[:, axis], edge_valid[:, axis + 2]
+        span = np.maximum(expect[:, axis], boxes[:, axis + 2] - boxes[:, axis])
+        cut_lo = ok & ~lo & hi
+        cut_hi = ok & lo & ~hi
+        out[cut_lo, axis] = boxes[cut_lo, axis + 2] - span[cut_lo]
+        out[cut_hi, axis + 2] = boxes[cut_hi, axis] + span[cut_hi]
+    return out

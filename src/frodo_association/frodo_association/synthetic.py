@@ -52,14 +52,16 @@ class SynthFrame:
     instances: np.ndarray
     gt: dict[int, int] = field(default_factory=dict)
     visibility: dict[int, float] = field(default_factory=dict)
+    depth: np.ndarray | None = None
 
 
 @dataclass
 class SynthScene:
-    """Objects and frames of one box-world scene."""
+    """Objects and frames of one scene, optionally with sparse SLAM landmarks (P, 3) (world)."""
 
     objects: list[BoxObject]
     frames: list[SynthFrame]
+    landmarks: np.ndarray | None = None
 
 
 def random_objects(n: int, rng: np.random.Generator, extent: float = 1.6, max_tables: int = 1) -> list[BoxObject]:
@@ -169,8 +171,8 @@ def add_noise(scene: SynthScene, seed: int, mask_noise: int = 0, rot_noise_deg: 
             vis = {lab: v for lab, v in vis.items() if lab in present}
         observed = _perturb(f.T_world_camera, rng, rot_noise_deg, trans_noise) \
             if (rot_noise_deg or trans_noise) else f.T_world_camera_observed
-        frames.append(SynthFrame(f.stamp, f.K, f.T_world_camera, observed, f.size, instances, gt, vis))
-    return SynthScene(scene.objects, frames)
+        frames.append(SynthFrame(f.stamp, f.K, f.T_world_camera, observed, f.size, instances, gt, vis, f.depth))
+    return SynthScene(scene.objects, frames, scene.landmarks)
 
 
 def make_scene(n_objects: int, seed: int, n_frames: int = 60, size: tuple[int, int] = (320, 240),

@@ -43,21 +43,31 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from frodo_association.boxes import Box3D, box_iou, clip_boxes, fit_box, project_boxes
+from frodo_association.boxes import CLASS_SHAPES, Box3D, box_iou, clip_boxes, fit_box, footprint_overlap, project_boxes
 from frodo_association.config import ASSOCIATION_DTYPE, AssociationConfig
 from frodo_association.pruning import prune_detections
-from frodo_association.segments import (box_segments, clip_segments_to_heights, gated_assignment, lsq_center,
-                                        lsq_centers, point_segment_distance)
+from frodo_association.segments import (box_segments, clip_segments_to_heights, complete_truncated_boxes,
+                                        gated_assignment, lsq_center, lsq_centers, point_segment_distance,
+                                        ray_segments, surface_intervals)
 from frodo_common.categories import category_by_id
 from frodo_common.geometry import invert_transform
 from frodo_detection.core import instance_boxes, resolution_scale
 
 
+def class_shape(coco_id: int, size_range: tuple[float, float]) -> tuple[float, float, float]:
+    """Typical (long, short, height) of a class (`CLASS_SHAPES`); a cube of the geometric-mean size for others."""
+    if int(coco_id) in CLASS_SHAPES:
+        return CLASS_SHAPES[int(coco_id)]
+    s = float(np.sqrt(size_range[0] * size_range[1]))
+    return (s, s, s)
+
+
 @dataclass
 class ObjectTrack:
     """One cluster: id, class, centre (3,), published ("confirmed") or not, 3D box (None until fitted), its
-    detection count at the last box fit, and whether the deferred truncated rule opened it (until it merges
-    with another cluster or gains min_track_views reliable detections)."""
+    detection count at the last box fit, whether the deferred truncated rule opened it (until it merges
+    with another cluster or gains min_track_views reliable detections), and whether it merged a cluster opened
+    that way with an ordinary one (its centre then comes from its untruncated detections)."""
 
     object_id: int
     coco_id: int
@@ -66,6 +76,7 @@ class ObjectTrack:
     box: Box3D | None = None
     fitted_views: int = 0
     from_truncated: bool = False
+    whole_view_center: bool = False
 
 
 @dataclass
@@ -140,15 +151,22 @@ class Associator:
         self.next_id = 0
         self.published: dict[int, tuple[np.ndarray, np.ndarray]] = {}   # stamp -> (object ids, kept) sent
         self.merges = 0
+        self._frames_since_pass = 0                 # full-pass cadence: frames and camera travel since the last
+        self._travel = 0.0
+        self._last_eye: np.ndarray | None = None
 
     # ------------------------------------------------------------ public API
     def add_frame(self, stamp: int, K: np.ndarray, T_world_camera: np.ndarray, size: tuple[int, int],
-                  labels: np.ndarray, boxes: np.ndarray) -> AssociationUpdate:
+                  labels: np.ndarray, boxes: np.ndarray, surface_depth: np.ndarray | None = None) -> AssociationUpdate:
         """Associate one frame's detections (clustering, merges, confirmation, pruning with the current boxes).
 
         stamp: frame stamp (ns); K: (3, 3); T_world_camera: (4, 4); size: image (width, height);
-        labels: (N,) contract instance labels; boxes: (N, 4) detection boxes. A stamp seen before is
-        ignored (its current rows are returned). Box fits are left to `refine_boxes`.
+        labels: (N,) contract instance labels; boxes: (N, 4) detection boxes; surface_depth: optional (N,)
+        optical depth (m) of each detection's visible surface (`evidence.surface_depths`; NaN: unknown). A
+        stamp seen before is ignored (its current rows are returned). Box fits are left to `refine_boxes`.
+        With a surface depth a detection's segment is [d_s - surface_slack, d_s + half the class's horizontal
+        diagonal] on its ray, the ray of a truncated box is completed (`complete_truncated`), and a truncated
+        detection may open clusters (`evidence_opens_clusters`).
         """
         if stamp in self.frame_index:
             return AssociationUpdate(stamp, self.frame_table(stamp))
@@ -162,11 +180,6 @@ class Associator:
         valid = np.array([c is not None for c in cats], dtype=bool) & np.all(np.isfinite(boxes), axis=1) \
             & (boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1])
         size_ranges = np.array([c.size_range if c is not None else (1.0, 1.0) for c in cats]).reshape(-1, 2)
-        segments = box_segments(boxes, K, T_world_camera, size_ranges, cfg.depth_margin, cfg.min_depth,
-                                cfg.max_depth)
-        if cfg.objects_on_floor:     # the centre of an object standing on the floor is at half its height
-            segments = clip_segments_to_heights(segments, cfg.floor_height + 0.25 * size_ranges[:, 0],
-                                                cfg.floor_height + 0.5 * size_ranges[:, 1] * (1 + cfg.depth_margin))
         w, h = size
         m = cfg.border_margin
         scale = resolution_scale(w, h)
@@ -175,12 +188,32 @@ class Associator:
         big_enough = (boxes[:, 2] - boxes[:, 0] >= cfg.min_box_width * scale) \
             & (boxes[:, 3] - boxes[:, 1] >= cfg.min_box_height * scale)
         truncated = ~edge_valid.all(axis=1)
+        segments = box_segments(boxes, K, T_world_camera, size_ranges, cfg.depth_margin, cfg.min_depth,
+                                cfg.max_depth)
+        surface = np.full(len(labels), np.nan) if surface_depth is None \
+            else np.asarray(surface_depth, dtype=np.float64).reshape(-1)
+        if len(surface) != len(labels):
+            raise ValueError(f'surface_depth has {len(surface)} entries for {len(labels)} detections')
+        has_depth = valid & np.isfinite(surface) & (surface > 0)
+        if has_depth.any():
+            shapes = np.array([class_shape(c, r) for c, r in zip(coco[has_depth], size_ranges[has_depth])])
+            extent = 0.5 * np.hypot(shapes[:, 0], shapes[:, 1])
+            ray_boxes = boxes[has_depth]
+            if cfg.complete_truncated:
+                ray_boxes = complete_truncated_boxes(ray_boxes, edge_valid[has_depth], K,
+                                                     surface[has_depth] + 0.5 * shapes[:, 1], shapes)
+            segments[has_depth] = ray_segments(ray_boxes, K, T_world_camera, surface_intervals(
+                surface[has_depth], extent, cfg.surface_slack, cfg.min_depth, cfg.max_depth))
+        if cfg.objects_on_floor:     # the centre of an object standing on the floor is at half its height
+            segments = clip_segments_to_heights(segments, cfg.floor_height + 0.25 * size_ranges[:, 0],
+                                                cfg.floor_height + 0.5 * size_ranges[:, 1] * (1 + cfg.depth_margin))
+        evidence_opens = has_depth & cfg.evidence_opens_clusters
+        opens = cfg.truncated_opens_clusters | ~truncated | evidence_opens
         fi = len(self.frames)
         rows = self.rows.append(segment=segments, box=boxes, edge_valid=edge_valid, label=labels, coco=coco,
                                 frame=np.full(len(labels), fi), assign=np.full(len(labels), -1),
                                 kept=np.zeros(len(labels), bool), valid=valid,
-                                reliable=valid & big_enough & (cfg.truncated_opens_clusters | ~truncated),
-                                truncated=valid & big_enough & truncated)
+                                reliable=valid & big_enough & opens, truncated=valid & big_enough & truncated & ~evidence_opens)
         self.frames.append(stamp=[stamp], K=K[None], T_world_camera=T_world_camera[None],
                            T_camera_world=invert_transform(T_world_camera)[None], size=[(w, h)],
                            start=[rows.start], stop=[rows.stop])
@@ -188,7 +221,14 @@ class Associator:
         self._update_centers(self._assign_frame(rows))
         dirty: set[int] = set()
         removed: dict[int, int] = {}
-        full = cfg.full_pass_every > 0 and len(self.frames) % cfg.full_pass_every == 0
+        eye = T_world_camera[:3, 3]
+        self._travel += float(np.linalg.norm(eye - self._last_eye)) if self._last_eye is not None else 0.0
+        self._last_eye = eye.copy()
+        self._frames_since_pass += 1
+        full = (cfg.full_pass_every > 0 and self._frames_since_pass >= cfg.full_pass_every) \
+            or (cfg.full_pass_distance > 0 and self._travel >= cfg.full_pass_distance)
+        if full:
+            self._frames_since_pass, self._travel = 0, 0.0
         if full:
             changed, gone = self.full_pass()
             dirty |= changed
@@ -311,7 +351,10 @@ class Associator:
         return touched
 
     def _update_centers(self, ids) -> None:
-        """Re-estimate the centres of the given clusters from their member segments (one batched solve)."""
+        """Re-estimate the centres of the given clusters from their member segments (one batched solve). A cluster
+        merged with one opened by the deferred truncated rule (`ObjectTrack.whole_view_center`, with
+        whole_view_centers) uses only its untruncated detections once it has min_track_views of them: the
+        box-centre rays of the truncated ones are biased towards the visible part and drag the merged centre."""
         ids = np.asarray(sorted(ids), dtype=np.int64)
         if len(ids) == 0:
             return
@@ -319,6 +362,12 @@ class Associator:
         slot[ids] = np.arange(len(ids))
         rows = np.nonzero(slot[self.rows.assign] >= 0)[0]
         group = slot[self.rows.assign[rows]]
+        if self.cfg.whole_view_centers:
+            whole = self.rows.edge_valid[rows].all(axis=1)
+            flagged = np.array([self.tracks[int(i)].whole_view_center for i in ids], dtype=bool)
+            only_whole = flagged & (np.bincount(group[whole], minlength=len(ids)) >= self.cfg.min_track_views)
+            sel = whole | ~only_whole[group]
+            rows, group = rows[sel], group[sel]
         # At most max_center_segments per cluster, evenly spread over its detections (bounded cost).
         order = np.argsort(group, kind='stable')
         rows, group = rows[order], group[order]
@@ -514,6 +563,8 @@ class Associator:
         self.rows.assign[members[order[~first]]] = -1
         survivor = self.tracks[keep]
         survivor.confirmed = survivor.confirmed or self.tracks[gone].confirmed
+        survivor.whole_view_center |= self.tracks[gone].whole_view_center \
+            or (survivor.from_truncated != self.tracks[gone].from_truncated)
         survivor.from_truncated = survivor.from_truncated and self.tracks[gone].from_truncated
         survivor.fitted_views = 0                      # refit with the merged detections
         if survivor.box is None:
@@ -530,25 +581,43 @@ class Associator:
         more than half of its detections are explained by that object's 3D box (`_explaining_objects`: IoU with
         the clipped projection at least truncated_explained_iou). Run at full passes; catches duplicates whose
         centres are farther apart than the merge distances because the box-centre rays of partial views (the
-        visible end of a long table) are biased. Returns ({gone id: surviving id}, frames whose rows changed)."""
+        visible end of a long table) are biased. Also merges two published objects of one class whose 3D boxes'
+        floor footprints overlap by at least box_overlap_merge of the smaller one (two objects cannot stand in one
+        place; partial views at close range give such duplicates). Returns ({gone id: surviving id}, frames whose
+        rows changed)."""
         removed: dict[int, int] = {}
         dirty: set[int] = set()
-        if self.cfg.truncated_explained_iou > 1.0 or len(self.tracks) < 2:
-            return removed, dirty
-        rows = np.nonzero(self.rows.assign >= 0)[0]
-        expl = self._explaining_objects(rows)                 # one batched projection for all clusters
-        n = np.bincount(self.rows.assign[rows], minlength=self.next_id)
-        pairs, counts = np.unique(np.stack([self.rows.assign[rows], expl])[:, expl >= 0], axis=1, return_counts=True)
         touched: set[int] = set()
-        for (oid, by), c in zip(pairs.T.tolist(), counts.tolist()):
-            if c * 2 > n[oid] and n[oid] >= self.cfg.min_track_views and not {oid, by} & touched:
-                removed, dirty = self._merge_pair(oid, by, removed, dirty)
-                touched |= {oid, by}                           # the rest waits for the next full pass
+        if len(self.tracks) < 2:
+            return removed, dirty
+        if self.cfg.truncated_explained_iou <= 1.0:
+            rows = np.nonzero(self.rows.assign >= 0)[0]
+            expl = self._explaining_objects(rows)                 # one batched projection for all clusters
+            n = np.bincount(self.rows.assign[rows], minlength=self.next_id)
+            pairs, counts = np.unique(np.stack([self.rows.assign[rows], expl])[:, expl >= 0], axis=1,
+                                      return_counts=True)
+            for (oid, by), c in zip(pairs.T.tolist(), counts.tolist()):
+                if c * 2 > n[oid] and n[oid] >= self.cfg.min_track_views and not {oid, by} & touched:
+                    removed, dirty = self._merge_pair(oid, by, removed, dirty)
+                    touched |= {oid, by}                           # the rest waits for the next full pass
+        if self.cfg.box_overlap_merge <= 1.0:
+            boxed = [t for t in self.confirmed_tracks() if t.box is not None and t.object_id not in touched]
+            for i, a in enumerate(boxed):
+                for b in boxed[i + 1:]:
+                    if a.coco_id == b.coco_id and not {a.object_id, b.object_id} & touched \
+                            and footprint_overlap(a.box, b.box) >= self.cfg.box_overlap_merge:
+                        removed, dirty = self._merge_pair(a.object_id, b.object_id, removed, dirty)
+                        touched |= {a.object_id, b.object_id}
         return removed, dirty
 
     def hit_ratio(self, object_id: int) -> tuple[float, int]:
         """(frames with a detection / frames whose image contains the cluster centre, frames in view),
         counted from the cluster's first detection."""
+        ratio, n_view, _ = self._view_stats(object_id)
+        return ratio, n_view
+
+    def _view_stats(self, object_id: int) -> tuple[float, int, bool]:
+        """`hit_ratio` and whether the cluster centre is in view in the latest frame."""
         t = self.tracks[object_id]
         hit_frames = self.rows.frame[self.members(object_id)]
         first = int(hit_frames.min())
@@ -565,13 +634,31 @@ class Associator:
         hit = np.zeros(len(in_view), dtype=bool)
         hit[hit_frames - first] = True
         n_view = int(np.count_nonzero(in_view | hit))
-        return float(np.count_nonzero(hit)) / max(n_view, 1), n_view
+        return float(np.count_nonzero(hit)) / max(n_view, 1), n_view, bool(in_view[-1] | hit[-1])
+
+    def distinct_views(self, object_id: int, reliable_only: bool = True) -> int:
+        """Viewpoints of a cluster's detections: its frames' camera centres counted greedily (in frame order), a
+        centre within view_separation of one already counted adding nothing."""
+        rows = self.members(object_id)
+        if reliable_only:
+            rows = rows[self.rows.reliable[rows]]
+        eyes = self.frames.T_world_camera[np.unique(self.rows.frame[rows])][:, :3, 3]
+        kept: list[np.ndarray] = []
+        for e in eyes:
+            if not kept or np.min(np.linalg.norm(np.array(kept) - e, axis=1)) >= self.cfg.view_separation:
+                kept.append(e)
+        return len(kept)
 
     def _update_confirmation(self, recheck: bool) -> tuple[set[int], dict[int, int]]:
         """Confirm clusters with at least min_track_views reliable detections (not truncated, not too small:
-        those that may open clusters; for clusters opened by the deferred truncated rule, truncated ones count), in view for at least confirm_window frames and a hit ratio of at least
+        those that may open clusters; for clusters opened by the deferred truncated rule, truncated ones count), in
+        view for at least confirm_window frames and a hit ratio of at least
         min_hit_ratio; with `recheck`, withdraw confirmed clusters whose hit ratio fell below drop_hit_ratio
-        (over at least 2 * min_track_views frames in view). Returns (frames whose rows change, withdrawn ids)."""
+        (over at least 2 * min_track_views frames in view). Keyframe rule (confirm_views > 0): a cluster whose
+        centre has left the view before confirm_window frames (sparse keyframes: an object in view in 3 of 35)
+        is published when its reliable detections come from confirm_views distinct viewpoints (views far apart
+        are independent evidence, as consecutive video frames are not); while in view it waits for
+        confirm_window as before. Returns (frames whose rows change, withdrawn ids)."""
         cfg = self.cfg
         counts = np.bincount(self.rows.assign[(self.rows.assign >= 0) & self.rows.reliable], minlength=self.next_id)
         all_counts = np.bincount(self.rows.assign[(self.rows.assign >= 0) & (self.rows.reliable | self.rows.truncated)],
@@ -583,8 +670,10 @@ class Associator:
                 t.from_truncated = False          # now seen whole often enough: an ordinary cluster
             n = all_counts[t.object_id] if t.from_truncated else counts[t.object_id]
             if not t.confirmed and n >= cfg.min_track_views:
-                ratio, n_view = self.hit_ratio(t.object_id)
-                if ratio >= cfg.min_hit_ratio and n_view >= cfg.confirm_window:
+                ratio, n_view, in_view = self._view_stats(t.object_id)
+                if ratio >= cfg.min_hit_ratio and (n_view >= cfg.confirm_window or (
+                        cfg.confirm_views > 0 and not in_view
+                        and self.distinct_views(t.object_id, not t.from_truncated) >= cfg.confirm_views)):
                     t.confirmed = True
                     changed.append(t.object_id)
             elif t.confirmed and recheck:
@@ -616,7 +705,8 @@ class Associator:
         track.box = fit_box(self.frames.K[frames], self.frames.T_camera_world[frames], self.rows.box[members],
                             edge_valid, category.size_range, track.center,
                             cfg.floor_height if cfg.objects_on_floor else None, cfg.size_prior_weight,
-                            cfg.center_anchor_weight, track.box)
+                            cfg.center_anchor_weight, track.box, class_shape(track.coco_id, category.size_range),
+                            cfg.height_prior_weight)
         return track.box
 
     def _prune_frames(self, frame_indices: list[int]) -> None:
