@@ -2,7 +2,8 @@
 
 A FroDO node reports on `/diagnostics` on its first executor spin, i.e. once it is constructed and its
 subscriptions exist (`frodo_common.node`). The monitor counts a node as up when a report carries the pid
-of the process the launcher started last (so a restarted node counts only once its new process is up),
+of the process the launcher started last (so a restarted node counts only once its new process is up)
+and the last one came less than `silent_after` seconds ago (a dead or hung node drops out),
 and the graph as ready when every node is up and the subscriptions the ROS graph shows for each node have
 not changed for `settle` seconds (discovery reports them one by one). It says so once per transition,
 and publishes its own status on `/diagnostics` (name `frodo_launch`: `ready`, `waiting`, late joiners) so
@@ -37,15 +38,17 @@ class GraphMonitor:
 
     def __init__(self, node: Node, names: Sequence[str], log: Callable[[str], None],
                  pids: Callable[[], dict[str, int]] | None = None, settle: float = 1.0, period: float = 1.0,
-                 publish: bool = True):
+                 publish: bool = True, silent_after: float = 5.0):
         self.node = node
         self.names = list(names)
         self.log = log
         self.pids = pids
         self.settle = settle
+        self.silent_after = silent_after
         self.ready = False
         self.late: dict[str, int] = {}               # node -> frames that had entered the graph before it came up
         self._latest: dict[str, dict[str, str]] = {}  # node -> key/values of its last report
+        self._heard: dict[str, float] = {}             # node -> when its last report came (monotonic)
         self._up_pid: dict[str, str] = {}              # node -> pid of the process seen up
         self._subs: dict[str, tuple[str, ...]] = {}
         self._subs_since = time.monotonic()
@@ -61,6 +64,7 @@ class GraphMonitor:
             for status in msg.status:
                 if status.name in self.names:
                     self._latest[status.name] = {kv.key: kv.value for kv in status.values}
+                    self._heard[status.name] = time.monotonic()
 
     def _current_pid(self, name: str) -> str | None:
         if self.pids is None:
@@ -75,14 +79,16 @@ class GraphMonitor:
         return max(counts, default=0)
 
     def up(self) -> list[str]:
-        """Nodes whose current process has reported."""
+        """Nodes whose current process has reported, the last time less than `silent_after` seconds ago."""
         with self._lock:
-            latest = dict(self._latest)
+            latest, heard = dict(self._latest), dict(self._heard)
+        now = time.monotonic()
         out = []
         for name in self.names:
             values = latest.get(name)
             expected = self._current_pid(name)
-            if values is not None and (expected is None or values.get('pid') == expected):
+            if (values is not None and (expected is None or values.get('pid') == expected)
+                    and now - heard[name] < self.silent_after):
                 out.append(name)
         return out
 
