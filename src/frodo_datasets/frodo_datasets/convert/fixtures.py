@@ -52,14 +52,19 @@ class RenderedSequence:
 def render_sequence(frames: int = 8, width: int = 128, height: int = 96, seed: int = 0, layout: str = 'orbit',
                     objects: int = 1, classes: Sequence[str] = ('chair', 'dining table'),
                     hfov_deg: float = 60.0) -> RenderedSequence:
-    """Render `frames` views of a composed scene (deterministic in `seed`)."""
+    """Render `frames` views of a composed scene (deterministic in `seed`): the scene, trajectory and light
+    of `frodo synth --scene LAYOUT --seed SEED` (same draws), without its noise options."""
     scene = compose_scene(objects, classes, seed=seed, layout=layout)
     poses = trajectory(scene, layout, frames, seed=seed + 1, hfov_deg=hfov_deg)
     K = intrinsics(width, height, hfov_deg)
     renderer = Renderer(scene.render_objects())
+    rng = np.random.default_rng(seed)
+    elevation, azimuth = rng.uniform(np.radians(45), np.radians(70)), rng.uniform(0, 2 * np.pi)
+    light = Light(direction=(-np.cos(elevation) * np.cos(azimuth), -np.cos(elevation) * np.sin(azimuth),
+                             -np.sin(elevation)), intensity=0.7)
     seq = RenderedSequence(scene, K, (width, height), poses, [], [], [])
     for T in poses:
-        res = renderer.render(K, T, width, height, light=Light(), background=(0.82, 0.86, 0.9))
+        res = renderer.render(K, T, width, height, light=light, background=(0.82, 0.86, 0.9))
         seq.rgb.append(res.rgb)
         seq.depth.append(res.depth)
         seq.labels.append(res.labels)
