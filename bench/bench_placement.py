@@ -6,7 +6,8 @@ Per seed: a procedural object (chairs and tables alternate; families cycle over 
 held-out families of `frodo_datasets.shapes`, shape seed = the seed, so none is a training shape) stands on
 the floor at a random yaw; `--views` cameras on a 100-degree arc 2-2.8 m away render its mask and colour
 (320x240, 60 deg); the input code is the mean encoder code of 4 of those crops (as the fused stage);
-landmarks are 1 cm-noisy samples of its surface, of a neighbour object 1 m away and of the floor. The
+landmarks are 1 cm-noisy samples of its surface, of a neighbour chair 0.5 m beyond its footprint and of
+the floor. The
 sparse stage (`refine`, default `SparseConfig`) then starts from the true box moved and/or scaled:
 t30 = centre moved 30 cm horizontally, s0.5 / s2 = box half / twice the size about its centre.
 Metrics against the true surface: centre error (cm, box centres), scale ratio error, CD (cm, mean of both
@@ -72,8 +73,8 @@ def make_scene(prior: ShapePrior, seed: int, n_views: int) -> dict:
             crops.append(c)
             masks.append(m)
     code = prior.encode(np.stack(crops), np.stack(masks)).mean(0)
-    neighbour = generate('chair', seed + 1).apply_translation(
-        [centre[0] + 1.0, centre[1], -generate('chair', seed + 1).bounds[0, 2]])
+    neighbour = generate('chair', seed + 1)
+    neighbour.apply_translation([centre[0] + np.linalg.norm(mesh.extents[:2]) / 2 + 0.5, centre[1], -neighbour.bounds[0, 2]])
     marks = [trimesh.sample.sample_surface(world, 250, seed=seed)[0],
              trimesh.sample.sample_surface(neighbour, 150, seed=seed)[0],
              np.c_[rng.uniform(-2.5, 2.5, (150, 2)) + centre[:2], np.zeros(150)]]

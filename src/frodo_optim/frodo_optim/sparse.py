@@ -340,8 +340,9 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
             pts0_np, (center, size, box_yaw), views, batch, slam_points, yaws, crop_margin=DT_MARGIN,
             w_silhouette=cfg.w_silhouette, w_geometry=cfg.w_geometry, truncation=cfg.placement_truncation,
             keep=cfg.placement_keep, seed=cfg.seed)]
-    # landmarks near the input box and near every hypothesis: one set for all, so that their energies compare
-    boxes = [(center, size, box_yaw)] + [placement.placed_box(pts0_np, y, t, s) for y, t, s, src in candidates[4 + len(yaws):]]
+    # landmarks near the input box and near the best-scored hypothesis: one set for all candidates, so that their
+    # energies compare (near every hypothesis would add the neighbours' landmarks around the worse ones)
+    boxes = [(center, size, box_yaw)] + [placement.placed_box(pts0_np, y, t, s) for y, t, s, _ in candidates[4 + len(yaws):][:1]]
     near = [slam_points_near(slam_points, c, sz, y, margin=0.1 * float(np.max(sz)) + 0.05) for c, sz, y in boxes]
     slam = near[0] if len(near) == 1 else np.unique(np.concatenate(near), axis=0)
     slam_t = torch.as_tensor(slam) if len(slam) >= 5 and cfg.w_geometry > 0 else None
@@ -353,39 +354,48 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
             scores.append(float(e) if torch.isfinite(e) else np.inf)
     if not np.isfinite(scores).any():
         return fallback('energy is not finite for any yaw candidate', pts=pts0_np)
-    yaw0, t0, s0, source = candidates[int(np.argmin(scores))]
     first_input = int(np.argmin(scores[:4]))
     input_energy = scores[first_input]
 
-    # ---- joint optimisation of code, yaw, translation, log-scale (Adam, fixed iterations)
-    z = z0.clone().requires_grad_(cfg.optimise_code)
-    yaw = torch.tensor(yaw0, requires_grad=True)
-    t = torch.as_tensor(t0, dtype=torch.float32).clone().requires_grad_(True)
-    log_s = torch.tensor(math.log(s0), requires_grad=True)
-    groups = [{'params': [yaw], 'lr': cfg.lr_yaw}, {'params': [t], 'lr': cfg.lr_translation},
-              {'params': [log_s], 'lr': cfg.lr_log_scale}]
-    if cfg.optimise_code:
-        groups.append({'params': [z], 'lr': cfg.lr_code})
-    opt = torch.optim.Adam(groups)
-    best = None
-    initial_terms = None
-    done = 0
-    for it in range(int(cfg.iterations) + 1):
-        pts = prior.decode_points(z.to(device)).float().cpu()[0] if cfg.optimise_code else pts0
-        total, terms = energy(pts, z, yaw, t, log_s)
-        if initial_terms is None:
-            initial_terms = {k: float(v.detach()) for k, v in terms.items()} | {"total": float(total.detach())}
-        if not torch.isfinite(total):
-            break
-        if best is None or float(total.detach()) < best[0]:
-            best = (float(total.detach()), it, z.detach().clone(), float(yaw.detach()), t.detach().clone().double().numpy(),
-                    float(log_s.detach()), {k: float(v.detach()) for k, v in terms.items()} | {"total": float(total.detach())})
-        if it == int(cfg.iterations):
-            break
-        opt.zero_grad(set_to_none=True)
-        total.backward()
-        opt.step()
-        done = it + 1
+    # ---- joint optimisation of code, yaw, translation, log-scale (Adam, fixed iterations) from the best box start
+    # (the box-only initialisation) and from the best placement hypothesis, if any: the lower final energy wins,
+    # so a hypothesis replaces the box start only by ending lower
+    def descend(yaw0: float, t0, s0: float):
+        z = z0.clone().requires_grad_(cfg.optimise_code)
+        yaw = torch.tensor(yaw0, requires_grad=True)
+        t = torch.as_tensor(t0, dtype=torch.float32).clone().requires_grad_(True)
+        log_s = torch.tensor(math.log(s0), requires_grad=True)
+        groups = [{'params': [yaw], 'lr': cfg.lr_yaw}, {'params': [t], 'lr': cfg.lr_translation},
+                  {'params': [log_s], 'lr': cfg.lr_log_scale}]
+        if cfg.optimise_code:
+            groups.append({'params': [z], 'lr': cfg.lr_code})
+        opt = torch.optim.Adam(groups)
+        best = None
+        initial_terms = None
+        done = 0
+        for it in range(int(cfg.iterations) + 1):
+            pts = prior.decode_points(z.to(device)).float().cpu()[0] if cfg.optimise_code else pts0
+            total, terms = energy(pts, z, yaw, t, log_s)
+            if initial_terms is None:
+                initial_terms = {k: float(v.detach()) for k, v in terms.items()} | {"total": float(total.detach())}
+            if not torch.isfinite(total):
+                break
+            if best is None or float(total.detach()) < best[0]:
+                best = (float(total.detach()), it, z.detach().clone(), float(yaw.detach()), t.detach().clone().double().numpy(),
+                        float(log_s.detach()), {k: float(v.detach()) for k, v in terms.items()} | {"total": float(total.detach())})
+            if it == int(cfg.iterations):
+                break
+            opt.zero_grad(set_to_none=True)
+            total.backward()
+            opt.step()
+            done = it + 1
+        return best, initial_terms, done
+
+    n_box = 4 + len(yaws)
+    starts = [int(np.argmin(scores[:n_box]))] + ([n_box + int(np.argmin(scores[n_box:]))] if len(scores) > n_box else [])
+    runs = [(descend(*candidates[k][:3]), k) for k in starts]
+    (best, initial_terms, done), k_best = min(runs, key=lambda r: r[0][0][0] if r[0][0] is not None else np.inf)
+    yaw0, source = candidates[k_best][0], candidates[k_best][3]
     best_e, best_it, zb, yb, tb, lsb, terms_b = best
     s = math.exp(lsb)
     reason = ''
