@@ -31,3 +31,4 @@ def test_demo_reconstructs_and_scores_the_demo_bag(tmp_path, capsys):
     tables = report['per_class']['dining table']
     assert tables['n_matched'] == tables['n_gt'] and tables['f1'] > 85.0, printed
     assert 'evaluation against the ground truth' in printed
+    assert 'optimiser stages per object' in printed and 'stages: ' in printed   # final stage and reason per object

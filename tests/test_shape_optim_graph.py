@@ -69,7 +69,9 @@ def test_shape_and_optimiser_nodes_reconstruct_an_object_from_the_demo_bag():
     try:
         period = Parameter('diagnostics_period', value=0.2)
         shape = ShapeNode(parameter_overrides=[period])
-        optim = OptimNode(parameter_overrides=[period, Parameter('mesh_resolution', value=48)])
+        optim = OptimNode(parameter_overrides=[period, Parameter('mesh_resolution', value=48),
+                                               Parameter('dense_iterations', value=8),
+                                               Parameter('dense_grid_resolution', value=24)])
         probe = rclpy.create_node('shape_optim_probe')
         for node in (shape, optim, probe):
             executor.add_node(node)
@@ -125,7 +127,7 @@ def test_shape_and_optimiser_nodes_reconstruct_an_object_from_the_demo_bag():
         tracks_pub.publish(MarkerArray(markers=[nan_box, good_box]))
         assert spin_until(lambda: objects and any(m.id == OBJECT_ID for m in objects[-1].markers)
                           and status('optim_node').get('state') == 'idle'
-                          and status('optim_node').get('dense_objects') == '1', timeout=120.0), status('optim_node')
+                          and status('optim_node').get('dense_objects') == '1', timeout=180.0), status('optim_node')
         assert int(status('optim_node')['errors']) >= 1       # the NaN box
         mesh_marker = next(m for m in objects[-1].markers if m.id == OBJECT_ID)
         assert mesh_marker.type == Marker.TRIANGLE_LIST and mesh_marker.header.frame_id == 'world'

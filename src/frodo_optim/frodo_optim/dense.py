@@ -45,6 +45,10 @@ from frodo_optim.photometric import LABEL_OBJECT, LABEL_UNKNOWN, DenseView, View
 from frodo_optim.sparse import code_statistics, select_views, slam_points_near
 from frodo_shape.meshing import grid_points, marching_cubes, sdf_grid
 
+# Ray samples with |zeta f| below this carry the silhouette gradient; beyond it log-sigmoid is flat (its slope
+# is below 1e-5 on the outside; deep inside, H is saturated), so those samples enter as constants.
+ACTIVE_LOGIT = 12.0
+
 
 @dataclass
 class DenseConfig:
@@ -63,7 +67,7 @@ class DenseConfig:
     r_max: float = 400.0
     mask_confidence: float = 0.95      # Pf on the mask, 1 - Pf off it
     w_silhouette: float = 1.0
-    w_photometric: float = 0.0
+    w_photometric: float = 2.0
     w_geometry: float = 0.5
     w_depth: float = 0.5
     w_code: float = 0.01
@@ -199,7 +203,8 @@ def dense_silhouette(volume: torch.Tensor, R: torch.Tensor, t: torch.Tensor, s: 
 
     volume (1, 1, R, R, R): SDF grid indexed [z, y, x] over [-1, 1]^3 (grid_sample layout); R (3, 3), t (3,),
     s (): the object pose. H = 1 - prod sig(zeta f) over samples every `step` along the ray inside the cube.
-    Differentiable in the volume values and the pose.
+    Differentiable in the volume values and the pose; all samples are read once without gradient, only those
+    with |zeta f| < ACTIVE_LOGIT again with it (the others are constants: their slope is negligible).
     """
     o = (rays.origin - t) @ R / s                                                    # (V, N, 3) object frame
     d = rays.direction @ R
@@ -208,14 +213,29 @@ def dense_silhouette(volume: torch.Tensor, R: torch.Tensor, t: torch.Tensor, s: 
     t1, t2 = (-1 - o) / safe, (1 - o) / safe
     t_near = torch.minimum(t1, t2).amax(-1).clamp_min(0)
     t_far = torch.maximum(t1, t2).amin(-1)
-    n = int(math.ceil(2 * math.sqrt(3) / step))
-    ts = t_near[..., None] + (torch.arange(n, dtype=o.dtype, device=o.device) + 0.5) * step          # (V, N, n)
-    valid = (ts < t_far[..., None]).float()
-    x = o[..., None, :] + ts[..., None] * d[..., None, :]
+    hit = t_far > t_near
+    length = float((t_far - t_near).detach()[hit].max()) if bool(hit.any()) else 0.0
+    n = max(1, int(math.ceil(length / step)))
     V, N = o.shape[:2]
-    f = F.grid_sample(volume, x.reshape(1, V * N, n, 1, 3), mode='bilinear', padding_mode='border',
-                      align_corners=True).reshape(V, N, n)
-    log_background = (F.logsigmoid(sharpness * f) * valid).sum(-1)                  # log(1 - H)
+    k = torch.arange(n, dtype=o.dtype, device=o.device) + 0.5
+    with torch.no_grad():   # every sample once without gradient
+        ts = t_near[..., None] + k * step                                             # (V, N, n)
+        valid = (ts < t_far[..., None]) & hit[..., None]
+        x = o[..., None, :] + ts[..., None] * d[..., None, :]
+        f = F.grid_sample(volume, x.reshape(1, V * N, n, 1, 3), mode='bilinear', padding_mode='border',
+                          align_corners=True).reshape(V, N, n)
+        # samples far from the surface have a flat log-sigmoid: constants; the band gets the gradient
+        active = valid & ((sharpness * f).abs() < ACTIVE_LOGIT)
+        log_background = (F.logsigmoid(sharpness * f) * (valid & ~active)).sum(-1)      # (V, N)
+    if torch.is_grad_enabled() and bool(active.any()):
+        v_i, n_i, k_i = torch.nonzero(active, as_tuple=True)
+        t_a = t_near[v_i, n_i] + k[k_i] * step
+        x_a = o[v_i, n_i] + t_a[:, None] * d[v_i, n_i]
+        f_a = F.grid_sample(volume, x_a.reshape(1, -1, 1, 1, 3), mode='bilinear', padding_mode='border',
+                            align_corners=True).reshape(-1)
+        log_background = log_background.reshape(-1).index_add(0, v_i * N + n_i, F.logsigmoid(sharpness * f_a)).reshape(V, N)
+    else:
+        log_background = log_background + (F.logsigmoid(sharpness * f) * active).sum(-1)
     H = 1 - torch.exp(log_background)
     pf = confidence * rays.target + (1 - confidence) * (1 - rays.target)
     nll = -torch.log((H * pf + (1 - H) * (1 - pf)).clamp_min(1e-6))

@@ -32,8 +32,8 @@ from frodo_common.frame_cache import FrameCache
 from frodo_common.params import ParamSpec
 from frodo_optim.core import ObjectEstimate, fused_estimate, world_box
 from frodo_optim.dense import DenseConfig, refine_dense
-from frodo_optim.photometric import dense_view_from_frame
-from frodo_optim.sparse import SparseConfig, ViewStore, refine, view_from_mask
+from frodo_optim.photometric import ViewBatch, dense_view_from_frame
+from frodo_optim.sparse import SparseConfig, ViewStore, refine, select_views, view_from_mask
 from frodo_optim.states import OBJECT_STATES, STAGE_REASONS, STAGES, STATES_DTYPE
 from frodo_shape.prior import ShapePrior
 
@@ -58,6 +58,8 @@ PARAMS = (
     ParamSpec('sparse_w_code', 0.01, 'Weight of the code regulariser Er (squared code z-score w.r.t. training codes).'),
     ParamSpec('sparse_optimise_code', True, 'Optimise the shape code too (false: pose only).'),
     ParamSpec('sparse_lr_code', 0.005, 'Adam step size of the shape code in the sparse stage.'),
+    ParamSpec('sparse_w_photometric', 2.0, 'Weight of the sparse photometric energy Ep (Eq. 5, visibility-aware; '
+              'needs dense_enabled for the colour crops); 0 disables.'),
     ParamSpec('dense_enabled', True, 'Run the dense stage (Sec. 4.3 Dense Optimization: SDF decoder, code + 7-DoF '
               'pose) after a successful sparse stage.'),
     ParamSpec('dense_iterations', 20, 'Adam iterations of the dense stage per object and pass.'),
@@ -69,7 +71,7 @@ PARAMS = (
     ParamSpec('dense_sharpness', 100.0, 'zeta: SDF-to-logit scale of the ray-accumulated silhouette (per normalised unit).'),
     ParamSpec('dense_crop_size', 96, 'Side of the stored label/colour crop per detection (bounded memory).'),
     ParamSpec('dense_w_silhouette', 1.0, 'Weight of the dense silhouette energy (Eq. 8/9).'),
-    ParamSpec('dense_w_photometric', 0.5, 'Weight of the dense photometric energy (Eq. 5 on the proxy surface).'),
+    ParamSpec('dense_w_photometric', 2.0, 'Weight of the dense photometric energy (Eq. 5 on the proxy surface).'),
     ParamSpec('dense_w_geometry', 0.5, 'Weight of the landmark term (|SDF| at SLAM points, truncated).'),
     ParamSpec('dense_w_depth', 0.5, 'Weight of the registered-depth term (|SDF| at masked depth pixels), when depth is present.'),
     ParamSpec('dense_w_code', 0.01, 'Weight of the code regulariser in the dense stage.'),
@@ -277,7 +279,8 @@ class OptimNode(FrodoNode):
                             mask_samples=int(p['sparse_mask_samples']), point_samples=int(p['sparse_point_samples']),
                             yaw_candidates=int(p['sparse_yaw_candidates']), w_silhouette=float(p['sparse_w_silhouette']),
                             w_geometry=float(p['sparse_w_geometry']), w_code=float(p['sparse_w_code']),
-                            optimise_code=bool(p['sparse_optimise_code']), lr_code=float(p['sparse_lr_code']))
+                            optimise_code=bool(p['sparse_optimise_code']), lr_code=float(p['sparse_lr_code']),
+                            w_photometric=float(p['sparse_w_photometric']))
 
     def dense_config(self) -> DenseConfig:
         p = self.params
@@ -360,11 +363,14 @@ class OptimNode(FrodoNode):
     def _sparse(self, fused: ObjectEstimate, code: np.ndarray, box) -> ObjectEstimate | None:
         """Sparse stage of one object after its fused stage; publishes and returns the refined estimate (None
         when it fails: the fused result stays, with the reason)."""
+        config = self.sparse_config()
         with self.cond:
             views = self.view_store.views_of(fused.object_id)
+            colour = select_views(self.dense_store.views_of(fused.object_id), config.max_views)
             slam = self.slam_points
         t0 = time.perf_counter()
-        result = refine(self.prior, code, box, views, slam, self.sparse_config())
+        photometric = ViewBatch(colour) if colour and config.w_photometric > 0 else None   # sparse runs on CPU
+        result = refine(self.prior, code, box, views, slam, config, photometric=photometric)
         self.count('sparse_runs')
         if not result.ok:
             self.count('sparse_fallbacks')
