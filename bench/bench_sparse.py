@@ -41,9 +41,10 @@ def make_views(prior, n_views: int, mask_samples: int, width=640, height=480):
     return code, box, views
 
 
-def measure(prior, views: int, iterations: int = 30, repeats: int = 3) -> dict:
-    """Median yaw-search seconds and milliseconds per Adam iteration of the sparse stage over `views` views."""
-    cfg = SparseConfig(max_views=views, iterations=iterations)
+def measure(prior, views: int, iterations: int = 30, repeats: int = 3, placement: bool = True) -> dict:
+    """Median initialisation seconds (yaw search, and the placement search unless `placement` is False) and
+    milliseconds per Adam iteration of the sparse stage over `views` views."""
+    cfg = SparseConfig(max_views=views, iterations=iterations, placement_search=placement)
     code, box, view_list = make_views(prior, views, cfg.mask_samples)
     no_iterations = SparseConfig(**{**cfg.__dict__, 'iterations': 0})
     rows = []
@@ -57,7 +58,7 @@ def measure(prior, views: int, iterations: int = 30, repeats: int = 3) -> dict:
     search_s, per_it = np.median(np.array(rows), axis=0)
     return {'views': views, 'iterations': iterations, 'repeats': repeats, 'mask_samples': cfg.mask_samples,
             'point_samples': cfg.point_samples, 'yaw_candidates': cfg.yaw_candidates,
-            'init_yaw_search_s': round(float(search_s), 4), 'ms_per_iteration': round(1e3 * float(per_it), 2)}
+            'placement_search': placement, 'init_yaw_search_s': round(float(search_s), 4), 'ms_per_iteration': round(1e3 * float(per_it), 2)}
 
 
 def main() -> None:
@@ -66,10 +67,11 @@ def main() -> None:
     ap.add_argument('--iterations', type=int, default=30)
     ap.add_argument('--threads', type=int, default=1)
     ap.add_argument('--repeats', type=int, default=3)
+    ap.add_argument('--no-placement', action='store_true', help='box-only initialisation (no placement search)')
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     prior = ShapePrior.load('furniture', device='cpu')
-    out = measure(prior, args.views, args.iterations, args.repeats)
+    out = measure(prior, args.views, args.iterations, args.repeats, placement=not args.no_placement)
     out.update(threads=args.threads, machine=platform.processor() or platform.machine())
     print(json.dumps(out))
 
