@@ -204,7 +204,8 @@ def pool(reports: list[dict]) -> dict:
     f1 = [p['f1'] for p in pairs]
     return {
         'scenes': len(reports), 'objects': n_gt, 'found': len(pairs),
-        'not_done': sum(r.get('run', {}).get('exit_code', 0) != 0 for r in reports),
+        'timed_out': sum(r.get('run', {}).get('exit_code', 0) == 3 for r in reports),
+        'forced_stop': sum(r.get('run', {}).get('exit_code', 0) == 1 for r in reports),
         'recall': 100.0 * len(pairs) / n_gt if n_gt else 0.0,
         'fp_per_scene': fp / len(reports) if reports else 0.0,
         'median_centre_cm': 100.0 * float(np.median([p['centroid_distance_m'] for p in pairs])) if pairs else None,
@@ -226,11 +227,11 @@ def table(eval_set: EvalSet, out: Path, variants: list[str], markdown: bool = Fa
             continue
         s = pool([json.loads(f.read_text()) for f in files])
         rows.append((variant, s))
-    head = ['variant', 'scenes', 'not done', 'objects', 'recall %', 'FP/scene', 'median centre cm', 'mean CD cm', 'mean F1@5cm',
+    head = ['variant', 'scenes', 'timed out', 'objects', 'recall %', 'FP/scene', 'median centre cm', 'mean CD cm', 'mean F1@5cm',
             'F1 (misses = 0)']
     lines = []
     for variant, s in rows:
-        lines.append([variant, str(s['scenes']), str(s['not_done']), str(s['objects']), fmt(s['recall'], '.1f'), fmt(s['fp_per_scene'], '.2f'),
+        lines.append([variant, str(s['scenes']), str(s['timed_out']), str(s['objects']), fmt(s['recall'], '.1f'), fmt(s['fp_per_scene'], '.2f'),
                       fmt(s['median_centre_cm'], '.1f'), fmt(s['mean_cd_cm'], '.2f'), fmt(s['mean_f1'], '.1f'),
                       fmt(s['mean_f1_all'], '.1f')])
     if markdown:
