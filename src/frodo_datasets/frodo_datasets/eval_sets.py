@@ -3,6 +3,7 @@
     python -m frodo_datasets.eval_sets build realcapture OUT [--variants full,full100] [--scenes 0-11]
     python -m frodo_datasets.eval_sets run   realcapture OUT [--variants full] [--rate 1]
     python -m frodo_datasets.eval_sets table realcapture OUT [--markdown]
+    python -m frodo_datasets.eval_sets families realcapture OUT --variants full   # seen vs held-out designs
 
 Two disjoint sets of rooms (issue 9), both in the `handheld` real-capture regime (`realcapture`):
 - `realcapture` (HELD OUT, for reporting only): 12 rooms, seeds 9100-9111, 3 or 4 objects each (42 in
@@ -241,9 +242,35 @@ def table(eval_set: EvalSet, out: Path, variants: list[str], markdown: bool = Fa
     return '\n'.join('  '.join(c.rjust(w) for c, w in zip(r, widths)) for r in [head, *lines])
 
 
+def family_table(eval_set: EvalSet, out: Path, variant: str) -> str:
+    """Recall, mean F1@5cm and CD of one variant's results split by class and by seen (training) vs held-out
+    family (the room's objects are recomposed from the seeds; nothing is rendered)."""
+    from frodo_datasets.scene import compose_scene
+    from frodo_datasets.shapes import eval_families
+
+    groups: dict[tuple[str, str], list] = {}
+    for scene, seed, n in eval_set.scenes():
+        path = out / 'results' / variant / f'{scene}.json'
+        if not path.is_file():
+            continue
+        pairs = {p['gt_id']: p for p in json.loads(path.read_text())['pairs']}
+        config = scene_config(eval_set, seed, n, variant)
+        room = compose_scene(config.objects, config.classes, seed=config.seed, family_set=config.family_set)
+        for o in room.objects:
+            kind = 'held-out' if o.family in eval_families(o.class_name) else 'training'
+            groups.setdefault((o.class_name, kind), []).append(pairs.get(o.id))
+    lines = ['| class | families | objects | recall % | mean F1@5cm | mean CD cm |', '|---|---|---|---|---|---|']
+    for (class_name, kind), found in sorted(groups.items()):
+        matched = [p for p in found if p is not None]
+        f1 = f'{np.mean([p["f1"] for p in matched]):.1f}' if matched else '-'
+        cd = f'{np.mean([p["cd_cm"] for p in matched]):.2f}' if matched else '-'
+        lines.append(f'| {class_name} | {kind} | {len(found)} | {100 * len(matched) / len(found):.1f} | {f1} | {cd} |')
+    return '\n'.join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog='python -m frodo_datasets.eval_sets', description=__doc__.splitlines()[0])
-    parser.add_argument('command', choices=('build', 'run', 'table', 'list'))
+    parser.add_argument('command', choices=('build', 'run', 'table', 'families', 'list'))
     parser.add_argument('set', choices=tuple(SETS))
     parser.add_argument('out', type=Path, nargs='?', default=Path('out/eval_sets'))
     parser.add_argument('--variants', default='full', help=f'comma-separated, from: {", ".join(VARIANTS)} (or "all")')
@@ -270,6 +297,9 @@ def main(argv: list[str] | None = None) -> int:
         build(eval_set, args.out, variants, args.scenes)
     elif args.command == 'run':
         run(eval_set, args.out, variants, args.scenes, args.rate, args.params, args.timeout, args.code)
+    elif args.command == 'families':
+        for variant in variants:
+            print(f'{variant}:\n{family_table(eval_set, args.out, variant)}')
     else:
         print(table(eval_set, args.out, variants, args.markdown))
     return 0

@@ -3,7 +3,7 @@ from dataclasses import asdict
 
 import numpy as np
 
-from frodo_datasets.eval_sets import SETS, VARIANTS, pool, scene_config, table
+from frodo_datasets.eval_sets import SETS, VARIANTS, family_table, pool, scene_config, table
 from frodo_datasets.scene import compose_scene
 from frodo_datasets.shapes import eval_families
 
@@ -41,7 +41,8 @@ def test_variants_change_one_condition_at_a_time():
 
 def test_pool_and_table(tmp_path):
     def report(pairs, n_gt, fp):
-        return {'pairs': [{'f1': f, 'cd_cm': c, 'centroid_distance_m': d} for f, c, d in pairs],
+        return {'pairs': [{'f1': f, 'cd_cm': c, 'centroid_distance_m': d, 'gt_id': i + 1}
+                          for i, (f, c, d) in enumerate(pairs)],
                 'overall': {'n_gt': n_gt, 'false_positives': fp}}
     reports = [report([(80.0, 3.0, 0.05), (60.0, 5.0, 0.15)], 3, 1), report([(90.0, 2.0, 0.10)], 1, 0)]
     s = pool(reports)
@@ -54,3 +55,5 @@ def test_pool_and_table(tmp_path):
         (tmp_path / 'results' / 'full' / f'realcapture-{9100 + i}.json').write_text(json.dumps(r))
     text = table(SETS['realcapture'], tmp_path, ['full', 'plain'], markdown=True)
     assert '| full | 2 | 0 | 4 | 75.0 | 0.50 | 10.0 | 3.33 | 76.7 | 57.5 |' in text and 'plain' not in text
+    rows = [line.split('|') for line in family_table(SETS['realcapture'], tmp_path, 'full').splitlines()[2:]]
+    assert sum(int(r[3]) for r in rows) == 3 + 4  # every object of the two rooms, split by class and family kind
