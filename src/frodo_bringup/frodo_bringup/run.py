@@ -39,6 +39,9 @@ RECORDING_FILE = 'frodo.rrd'
 SUBSCRIPTION_MATCH_TIMEOUT = 10.0
 # Seconds the player's subscription matches must stay unchanged before playing (see Player.wait_for_subscribers).
 SUBSCRIPTION_SETTLE = 1.0
+# Seconds the nodes get to stop on SIGINT before SIGTERM: the outputs are written by then, and on a loaded
+# 2-core machine (load average 20) an idle shape_node took 6-7 s to exit, beyond the launcher's default 5 s.
+STOP_GRACE = 20.0
 # Consecutive reports (after the bag ended) of an idle optimiser and unchanged node counters that mean "done".
 DONE_REPORTS = 2
 
@@ -146,7 +149,8 @@ def run_bag(bag: str | os.PathLike, out_dir: str | os.PathLike, params_files: Se
     if viewer == 'rrd':
         nodes, params_files = tuple(nodes) + (VIEWER,), [*params_files, _viewer_params(out)]
     launcher = Launcher(nodes, params_files, on_failure='stop', log_dir=out / 'logs', output=output, env=env,
-                        on_exit=lambda exit_: stop.set() if not exit_.expected else None)
+                        on_exit=lambda exit_: stop.set() if not exit_.expected else None,
+                        sigint_timeout=STOP_GRACE)
     session = RosSession('frodo_run')
     result = RunResult(EXIT_OK)
     try:
