@@ -258,13 +258,14 @@ def sdf_distance(prior, points_world: torch.Tensor, z: torch.Tensor, R, t, s, tr
 
 # ------------------------------------------------------------------ stage
 def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView], slam_points: np.ndarray | None = None,
-                 box=None, config: DenseConfig | None = None) -> DenseResult:
+                 box=None, config: DenseConfig | None = None, should_stop=None) -> DenseResult:
     """Dense code + 7-DoF pose refinement of one object from its sparse estimate (paper Sec. 4.3).
 
     prior: `ShapePrior` (decoder.sdf, sdf_numpy, training_codes); code (C,), T_world_object (4, 4) similarity:
     the sparse result; views: `DenseView`s (at most config.max_views, spread evenly); slam_points (N, 3) world
     landmarks or None; box (centre, size, yaw) to select landmarks (None: all landmarks within the object's
-    cube). Never raises on bad input: returns the input with improved=False and a reason.
+    cube). should_stop: optional callable polled every iteration (a stopping node ends the stage at once,
+    keeping the best state so far). Never raises on bad input: returns the input with improved=False and a reason.
     """
     cfg = config or DenseConfig()
     start = time.perf_counter()
@@ -370,6 +371,9 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
             break
         if time.perf_counter() - start > cfg.max_seconds:
             reason_stop = f'time limit {cfg.max_seconds:g}s after {it} iterations'
+            break
+        if should_stop is not None and should_stop():
+            reason_stop = f'interrupted after {it} iterations'
             break
         opt.zero_grad(set_to_none=True)
         total.backward()

@@ -410,7 +410,8 @@ class OptimNode(FrodoNode):
             slam = self.slam_points
             self.dense_views_used[oid] = num_views
         t0 = time.perf_counter()
-        result = refine_dense(self.prior, sparse.code, sparse.T_world_object, views, slam, box, self.dense_config())
+        result = refine_dense(self.prior, sparse.code, sparse.T_world_object, views, slam, box, self.dense_config(),
+                              should_stop=lambda: self.stopping)   # shutdown does not wait for a whole dense stage
         self.count('dense_runs')
         self.dense_info[oid] = (f'{result.views} views, {result.iterations} it, {result.seconds:.2f}s '
                                 f'({result.seconds_per_iteration:.2f}s/it): {result.reason}')

@@ -241,3 +241,11 @@ def test_sparse_stage_uses_the_photometric_term(prior, scene):
     res = refine(prior, scene['code'], box, views, config=cfg, photometric=ViewBatch(scene['views']))
     assert res.ok and 'photometric' in res.energies and 0 <= res.energies['photometric'] < 0.05
     assert abs(math.atan2(math.sin(res.yaw - 0.7), math.cos(res.yaw - 0.7))) < 0.3
+
+
+def test_dense_stage_stops_when_asked(prior, scene):
+    calls = []
+    res = refine_dense(prior, scene['code'], scene['T'], scene['views'],
+                       config=DenseConfig(iterations=50, grid_resolution=20, rays_per_view=32),
+                       should_stop=lambda: calls.append(1) or len(calls) >= 2)
+    assert res.iterations <= 2 and 'interrupted' in res.reason
