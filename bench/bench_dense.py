@@ -77,8 +77,8 @@ def timing(args) -> None:
     T0 = pose_matrix(0.8, T[:3, 3] + [0.04, -0.03, 0.0], 0.52)
     rows = []
     for config in args.configs:
-        cfg = DenseConfig(max_views=args.views, iterations=args.iterations, max_seconds=1e9,
-                          **json.loads(config) if config else {})
+        cfg = DenseConfig(**{'max_views': args.views, 'iterations': args.iterations, 'max_seconds': 1e9,
+                             **(json.loads(config) if config else {})})
         res = refine_dense(prior, code0, T0, dense_views, config=cfg)
         rows.append({'config': config or 'default', 'seconds_per_iteration': round(res.seconds_per_iteration, 3),
                      'stage_seconds': round(res.seconds, 2), 'iterations': res.iterations, 'improved': res.improved})

@@ -58,7 +58,7 @@ PARAMS = (
     ParamSpec('sparse_w_code', 0.01, 'Weight of the code regulariser Er (squared code z-score w.r.t. training codes).'),
     ParamSpec('sparse_optimise_code', True, 'Optimise the shape code too (false: pose only).'),
     ParamSpec('sparse_lr_code', 0.005, 'Adam step size of the shape code in the sparse stage.'),
-    ParamSpec('sparse_w_photometric', 2.0, 'Weight of the sparse photometric energy Ep (Eq. 5, visibility-aware; '
+    ParamSpec('sparse_w_photometric', 0.0, 'Weight of the sparse photometric energy Ep (Eq. 5, visibility-aware; '
               'needs dense_enabled for the colour crops); 0 disables.'),
     ParamSpec('dense_enabled', True, 'Run the dense stage (Sec. 4.3 Dense Optimization: SDF decoder, code + 7-DoF '
               'pose) after a successful sparse stage.'),
