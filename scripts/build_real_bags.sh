@@ -5,8 +5,9 @@
 #
 # usage: scripts/build_real_bags.sh [OUT] [SRC]
 #   SRC (default OUT/src): where the two source repositories are cloned at their pinned commits.
-# AWS_URL / TUM_URL override the clone sources (e.g. local mirrors). Needs git, network access to github.com (only for the clones) and `make setup`'s .venv; pycollada (to read
-# the COLLADA meshes) is installed into SRC/pydeps, not into the project's environment.
+# AWS_URL / TUM_URL override the clone sources (e.g. local mirrors). Needs git, network access to github.com
+# (only for the clones) and `make setup`'s .venv; pycollada (to read the COLLADA meshes) is installed into
+# SRC/pydeps, not into the project's environment.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-data/real/build}

@@ -222,7 +222,8 @@ def visible_fraction(scene: Scene, poses: list[np.ndarray], K: np.ndarray, width
     out = []
     for T in poses:
         uv, z = project_points(K, invert_transform(T), points)
-        inside = (z > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] < width - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < height - 0.5)
+        u, v = uv[:, 0] + 0.5, uv[:, 1] + 0.5  # pixel edges at integers
+        inside = (z > 0) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
         out.append(inside.mean())
     return np.array(out)
 
