@@ -52,6 +52,8 @@ class AssociationConfig:
     surface_slack: float = 0.1
     evidence_opens_clusters: bool = True
     complete_truncated: bool = True
+    flat_segments: bool = True
+    occluded_fraction: float = 0.5
     confirm_views: int = 3
     view_separation: float = 0.3
     height_prior_weight: float = 0.0
@@ -122,6 +124,12 @@ CONFIG_DOC: dict[str, str] = {
                                'and counts towards publishing (its segment is short and its ray completed).',
     'complete_truncated': 'With a visible-surface depth, a box cut by the image border on one side is extended on '
                           'that side to the class\'s typical projected size before its centre ray is taken.',
+    'flat_segments': 'With a surface depth and objects_on_floor, the segment keeps the ray\'s x, y over its depth '
+                     'interval but lies at the class\'s typical centre height (CLASS_SHAPES), not at the box centre\'s '
+                     '(biased by occlusion below and truncation at the top).',
+    'occluded_fraction': 'A detection with a surface depth, not cut by the top or bottom border, whose box is lower '
+                         'than this fraction of the class\'s typical height projected at that depth is occluded: it '
+                         'joins clusters but opens none and does not count towards publishing (0: off).',
     'confirm_views': 'Keyframe rule: a cluster with min_track_views reliable detections and the hit ratio whose '
                      'centre left the view before confirm_window frames is published when its detections come from '
                      'this many distinct viewpoints (camera centres at least view_separation apart) (0: off).',

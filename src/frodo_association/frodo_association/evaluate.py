@@ -15,7 +15,11 @@ Metrics (per scene, then pooled over scenes):
   detections less than 70 % visible ("bad kept").
 
 Usage: python -m frodo_association.evaluate [--seeds 100-119] [--objects 2-5] [--frames 60]
-       [--layout walk|dense] [--conditions NAME,...] [--no-ablation] [--json OUT]
+       [--layout walk|dense|furniture] [--conditions NAME,...] [--no-ablation] [--json OUT]
+       python -m frodo_association.evaluate --layout handheld [--seeds 100-105] [--conditions real-like,...]
+           [--variants base,...] [--evidence depth,landmarks|depth|landmarks|none] [--before]
+           (keyframes of a handheld kitchen capture, `handheld.py`; one row per condition and variant with
+           recall, false tracks per scene (duplicates included) and the median centre error)
        python -m frodo_association.evaluate --bags A.mcap [B.mcap ...] [--pool] [--conditions NAME,...]
            (contract bags with ground truth; by default clean, one row per bag; --pool: one row per condition)
 """
@@ -93,6 +97,7 @@ class SceneResult:
     pruned_vis: list = None
     assoc_ms: list = None
     refine_ms: list = None
+    boxes: list = None
 
 
 def run_scene(scene: SynthScene, cfg: AssociationConfig, filt: FilterConfig,
@@ -154,6 +159,8 @@ def run_scene(scene: SynthScene, cfg: AssociationConfig, filt: FilterConfig,
         res.size_err.append(float(np.mean(np.abs(t.box.size - gt_size))))
         d = (t.box.yaw - gt_yaw + np.pi / 4) % (np.pi / 2) - np.pi / 4
         res.yaw_err.append(float(np.degrees(abs(d))))
+    res.boxes = [(t.coco_id, t.box.center, t.box.size, t.box.yaw, match.get(k, -1)) for k, t in enumerate(tracks)
+                 if t.box is not None]
     sel = ids >= 0
     res.kept = int(np.count_nonzero(kept & sel))
     res.kept_vis = vis[kept & sel].tolist()
@@ -268,6 +275,64 @@ def table_row(name: str, prune: bool, m: dict) -> str:
             f"{m['assoc_ms_mean']:.2f} | {m['refine_ms_mean']:.2f} |")
 
 
+def draw_scene_result(scene: SynthScene, res: SceneResult, path: str, title: str = '') -> None:
+    """Top view of a scene (ground-truth boxes black, camera path grey) and the published boxes (matched:
+    green, line to their object; duplicate or false: red), beside one keyframe's instance image."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    from frodo_common.geometry import box_corners
+
+    fig, (ax_img, ax) = plt.subplots(1, 2, figsize=(11, 4.4), gridspec_kw={'width_ratios': [1.25, 1]})
+    frame = max(scene.frames, key=lambda f: len(f.gt))
+    ax_img.imshow(np.where(frame.instances > 0, frame.instances % 256 * 37 % 255 + 1, 0), cmap='nipy_spectral',
+                  interpolation='nearest')
+    ax_img.set_title(f'a keyframe ({len(scene.frames)} in all): instance masks as seen', fontsize=9)
+    ax_img.axis('off')
+    eyes = np.array([f.T_world_camera_observed[:3, 3] for f in scene.frames])
+    ax.plot(eyes[:, 0], eyes[:, 1], '.', color='0.6', ms=3, label='keyframes (observed poses)')
+    for o in scene.objects:
+        c = box_corners(o.center, o.size, o.yaw)[[0, 2, 6, 4, 0], :2]
+        ax.plot(c[:, 0], c[:, 1], 'k-', lw=1.5)
+    for coco, center, size, yaw, gt in res.boxes:
+        c = box_corners(center, size, yaw)[[0, 2, 6, 4, 0], :2]
+        ax.plot(c[:, 0], c[:, 1], '-', color='tab:green' if gt >= 0 else 'tab:red', lw=1.2)
+        if gt >= 0:
+            g = scene.objects[gt].center
+            ax.plot([center[0], g[0]], [center[1], g[1]], '-', color='tab:green', lw=0.8)
+    ax.set_aspect('equal')
+    ax.set_title(title or 'top view: ground truth (black), published (green), duplicate/false (red)', fontsize=9)
+    ax.tick_params(labelsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+BEFORE_KEYFRAMES = {'confirm_views': 0, 'full_pass_distance': 0.0, 'box_overlap_merge': 2.0, 'whole_view_centers': False}
+"""Settings that reproduce the association before the keyframe front end (no evidence given either)."""
+HANDHELD_HEADER = ('| condition | variant | evidence | scenes | objects | recall | false / scene | dup | false | '
+                   'median centre err (m) | mean centre err (m) | size err (m) | yaw err (deg) | assoc ms | refine ms |')
+
+
+def handheld_rows(seeds: list[int], conditions: list[str], variants: list[str], evidence: tuple[str, ...],
+                  cfg: AssociationConfig, filt: FilterConfig, out: dict) -> None:
+    """Evaluate handheld keyframe scenes (made one at a time), print one HANDHELD_HEADER row per condition and
+    variant, and store the pooled metrics in out['results']."""
+    from frodo_association.handheld import make_handheld_scene
+
+    ev = ','.join(evidence) or 'none'
+    for variant in variants:
+        for name in conditions:
+            res = [run_scene(make_handheld_scene(seed, **HANDHELD_CONDITIONS[name], **HANDHELD_VARIANTS[variant]),
+                             cfg, filt, evidence) for seed in seeds]
+            m = summarise(res)
+            out['results'][f'{name} / {variant} / {ev}'] = m
+            print(f"| {name} | {variant} | {ev} | {m['scenes']} | {m['objects']} | {m['completeness']:.3f} | "
+                  f"{m['false_per_scene']:.2f} | {m['duplicates']} | {m['false_tracks']} | "
+                  f"{m['center_err_median_m']:.3f} | {m['center_err_m']:.3f} | {m['size_err_m']:.3f} | "
+                  f"{m['yaw_err_deg']:.1f} | {m['assoc_ms_mean']:.2f} | {m['refine_ms_mean']:.2f} |", flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Command line: evaluate box-world walks (or contract bags with ground truth), with and without pruning;
     print a Markdown table."""
@@ -286,10 +351,30 @@ def main(argv: list[str] | None = None) -> int:
                     'poses with the same models)')
     ap.add_argument('--pool', action='store_true', help='with --bags: one row per condition over all bags')
     ap.add_argument('--json', help='also write the results as JSON')
+    ap.add_argument('--variants', default='base', help='handheld: comma-separated subset of: ' + ', '.join(HANDHELD_VARIANTS))
+    ap.add_argument('--evidence', default='depth,landmarks',
+                    help="handheld: surface depth from 'depth', 'landmarks', both (depth first) or 'none'")
+    ap.add_argument('--before', action='store_true', help='handheld: the association settings before the keyframe '
+                    'front end (BEFORE_KEYFRAMES), no evidence')
     args = ap.parse_args(argv)
     filt = FilterConfig()
     base = AssociationConfig()
     out = {'machine': f'{platform.node()} ({platform.processor() or platform.machine()})', 'results': {}}
+    if args.layout == 'handheld':
+        evidence = () if args.before or args.evidence == 'none' else tuple(args.evidence.split(','))
+        cfg = replace(base, **BEFORE_KEYFRAMES) if args.before else base
+        seeds = _range(args.seeds)
+        print(f'# association evaluation: handheld keyframes, seeds {args.seeds}, {out["machine"]}'
+              + (' (settings before the keyframe front end)' if args.before else ''))
+        print(HANDHELD_HEADER)
+        print('|' + '---|' * (HANDHELD_HEADER.count('|') - 1))
+        handheld_rows(seeds, [c.strip() for c in (args.conditions or ','.join(HANDHELD_CONDITIONS)).split(',')],
+                      [v.strip() for v in args.variants.split(',')], evidence, cfg, filt, out)
+        out['config'] = asdict(cfg)
+        if args.json:
+            with open(args.json, 'w') as fh:
+                json.dump(out, fh, indent=1)
+        return 0
     conditions = [c.strip() for c in (args.conditions or ('clean' if args.bags else ','.join(CONDITIONS))).split(',')]
     if args.bags:
         groups = {}

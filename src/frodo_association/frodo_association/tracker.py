@@ -165,8 +165,10 @@ class Associator:
         optical depth (m) of each detection's visible surface (`evidence.surface_depths`; NaN: unknown). A
         stamp seen before is ignored (its current rows are returned). Box fits are left to `refine_boxes`.
         With a surface depth a detection's segment is [d_s - surface_slack, d_s + half the class's horizontal
-        diagonal] on its ray, the ray of a truncated box is completed (`complete_truncated`), and a truncated
-        detection may open clusters (`evidence_opens_clusters`).
+        diagonal] on its ray, the ray of a truncated box is completed (`complete_truncated`), a truncated
+        detection may open clusters (`evidence_opens_clusters`), the segment lies at the class's typical centre
+        height (`flat_segments`, objects on the floor), and one lower than occluded_fraction of the
+        class's typical projected height (not cut vertically) is occluded: it joins clusters but opens none.
         """
         if stamp in self.frame_index:
             return AssociationUpdate(stamp, self.frame_table(stamp))
@@ -195,6 +197,7 @@ class Associator:
         if len(surface) != len(labels):
             raise ValueError(f'surface_depth has {len(surface)} entries for {len(labels)} detections')
         has_depth = valid & np.isfinite(surface) & (surface > 0)
+        occluded = np.zeros(len(labels), dtype=bool)
         if has_depth.any():
             shapes = np.array([class_shape(c, r) for c, r in zip(coco[has_depth], size_ranges[has_depth])])
             extent = 0.5 * np.hypot(shapes[:, 0], shapes[:, 1])
@@ -204,11 +207,20 @@ class Associator:
                                                      surface[has_depth] + 0.5 * shapes[:, 1], shapes)
             segments[has_depth] = ray_segments(ray_boxes, K, T_world_camera, surface_intervals(
                 surface[has_depth], extent, cfg.surface_slack, cfg.min_depth, cfg.max_depth))
+            if cfg.objects_on_floor and cfg.flat_segments:
+                # Centre height from the class, not from the box: the box centre of a chair seen over a table
+                # (lower half hidden) or cut at the top is 0.3 m too high; x, y and depth stay the ray's.
+                segments[has_depth, :, 2] = (cfg.floor_height + 0.5 * shapes[:, 2])[:, None]
+            # Occluded: whole vertically, yet much lower than the class's typical height at that depth (a chair
+            # back above a table): its box-centre ray misses the object centre, so it must not open clusters.
+            expected_h = K[1, 1] * shapes[:, 2] / (surface[has_depth] + 0.5 * shapes[:, 1])
+            low = (boxes[has_depth, 3] - boxes[has_depth, 1]) < cfg.occluded_fraction * expected_h
+            occluded[has_depth] = low & edge_valid[has_depth][:, 1] & edge_valid[has_depth][:, 3]
         if cfg.objects_on_floor:     # the centre of an object standing on the floor is at half its height
             segments = clip_segments_to_heights(segments, cfg.floor_height + 0.25 * size_ranges[:, 0],
                                                 cfg.floor_height + 0.5 * size_ranges[:, 1] * (1 + cfg.depth_margin))
-        evidence_opens = has_depth & cfg.evidence_opens_clusters
-        opens = cfg.truncated_opens_clusters | ~truncated | evidence_opens
+        evidence_opens = has_depth & cfg.evidence_opens_clusters & ~occluded
+        opens = (cfg.truncated_opens_clusters | ~truncated | evidence_opens) & ~occluded
         fi = len(self.frames)
         rows = self.rows.append(segment=segments, box=boxes, edge_valid=edge_valid, label=labels, coco=coco,
                                 frame=np.full(len(labels), fi), assign=np.full(len(labels), -1),
