@@ -84,6 +84,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     world.add_argument('--landmarks', choices=LANDMARK_MODES, default='auto',
                        help='/slam/points from depth, from ORB features, or none (auto: depth if present)')
     world.add_argument('--slam-every', type=int, default=5, help='publish the landmark map every N frames (5)')
+    world.add_argument('--landmark-stride', type=int, default=4, help='depth landmarks: every N-th pixel (4)')
+    world.add_argument('--landmark-voxel', type=float, default=0.03, help='landmark pooling voxel, m (0.03)')
     topics = parser.add_argument_group('optional topics')
     topics.add_argument('--no-depth', action='store_true', help='do not write /camera/depth/image_raw')
     topics.add_argument('--no-instances', action='store_true', help='do not write /camera/instances')
@@ -111,14 +113,18 @@ def options_from_args(args: argparse.Namespace) -> tuple[ConvertOptions, dict]:
     gravity = 'up' if args.up is not None else args.gravity
     if args.up is not None and args.gravity not in ('auto', 'up'):
         raise ValueError('--up and --gravity are exclusive')
-    for name, value in (('--every', args.every), ('--slam-every', args.slam_every)):
+    for name, value in (('--every', args.every), ('--slam-every', args.slam_every),
+                        ('--landmark-stride', args.landmark_stride)):
         if value < 1:
             raise ValueError(f'{name} must be >= 1')
     if args.views is not None and args.views < 1 or args.max_frames is not None and args.max_frames < 1:
         raise ValueError('--views and --max-frames must be >= 1')
+    if args.landmark_voxel <= 0:
+        raise ValueError('--landmark-voxel must be > 0')
     options = ConvertOptions(views=args.views, every=args.every, max_frames=args.max_frames, resize=args.resize,
                              instances_at=args.instances_at, gravity=gravity, up=args.up, landmarks=args.landmarks,
-                             slam_every=args.slam_every, depth=not args.no_depth, instances=not args.no_instances,
+                             slam_every=args.slam_every, landmark_stride=args.landmark_stride,
+                             landmark_voxel=args.landmark_voxel, depth=not args.no_depth, instances=not args.no_instances,
                              ground_truth=not args.no_ground_truth, fps=args.fps, compression=args.compression)
     reader = {}
     for dest, (keyword, formats) in READER_FLAGS.items():

@@ -99,6 +99,8 @@ class ConvertOptions:
     depth, else the cameras' mean up), 'none', 'floor' (on depth, or on ORB landmarks without depth),
     'camera', or 'up' with `up` = the dataset's up vector;
     landmarks: 'auto' (depth if the dataset has depth, else features), 'depth', 'features', 'none';
+    landmark_stride, landmark_voxel, landmark_min_views: depth landmarks from every N-th pixel, pooled in
+    voxels of this size (m), kept once seen in this many keyframes [4, 0.03, 2] (see `landmarks.py`);
     depth, instances, ground_truth: write these optional topics when the dataset has them [True];
     fps: frame rate for datasets without timestamps [30] (intrinsics are reader options: see each reader).
     """
@@ -111,8 +113,8 @@ class ConvertOptions:
     gravity: str = 'auto'
     up: tuple[float, float, float] | None = None
     landmarks: str = 'auto'
-    landmark_stride: int = 8
-    landmark_voxel: float = 0.05
+    landmark_stride: int = 4
+    landmark_voxel: float = 0.03
     landmark_min_views: int = 2
     max_depth: float = 6.0
     slam_every: int = 5

@@ -64,7 +64,7 @@ class VoxelMap:
 class DepthLandmarks:
     """Landmarks from registered depth (see module docstring)."""
 
-    def __init__(self, stride: int = 8, voxel: float = 0.05, min_views: int = 2, max_depth: float = 6.0):
+    def __init__(self, stride: int = 4, voxel: float = 0.03, min_views: int = 2, max_depth: float = 6.0):
         self.stride, self.min_views, self.max_depth = int(stride), int(min_views), float(max_depth)
         self.map = VoxelMap(voxel)
         self.views = 0
@@ -82,7 +82,7 @@ class DepthLandmarks:
 class FeatureLandmarks:
     """Landmarks triangulated from ORB matches between consecutive keyframes (see module docstring)."""
 
-    def __init__(self, voxel: float = 0.05, min_views: int = 1, max_features: int = 1500,
+    def __init__(self, voxel: float = 0.03, min_views: int = 1, max_features: int = 1500,
                  max_reprojection_px: float = 2.0, min_parallax_deg: float = 1.0, max_depth: float = 20.0):
         # small border and patch so that low-resolution images keep features near their edges
         self.orb = cv2.ORB_create(nfeatures=max_features, edgeThreshold=15, patchSize=15, fastThreshold=10)

@@ -70,7 +70,7 @@ def _depth_points(source: Source, frames: list[SourceFrame], max_depth: float) -
 
 def _feature_points(source: Source, frames: list[SourceFrame]) -> np.ndarray:
     """World points (dataset frame) triangulated from ORB matches of consecutive frames (no depth)."""
-    landmarks = FeatureLandmarks()
+    landmarks = FeatureLandmarks(voxel=0.05)  # coarser than the published map: one vote per 5 cm for the plane fit
     undistort = None
     if source.dist is not None and np.any(np.asarray(source.dist) != 0):
         undistort = cv2.initUndistortRectifyMap(source.K_color, np.asarray(source.dist, np.float64), None,
