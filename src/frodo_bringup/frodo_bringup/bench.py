@@ -216,6 +216,7 @@ def end_to_end(bag: Path, out: Path, rate: float) -> dict[str, Any]:
     with RosSession('frodo_bench_probe') as probe:
         probe.node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, on_diagnostics, 100)
         result = run_bag(bag, out, rate=rate, output=log, progress=False, timeout=600)
+    (out / 'run.log').write_text(log.getvalue())
     names = [n.name for n in NODES]
     intervals = {}
 
@@ -235,7 +236,8 @@ def end_to_end(bag: Path, out: Path, rate: float) -> dict[str, Any]:
     optimiser_s = [r.get('timings', {}).get('optimiser_s') for r in result.records]
     optimiser_s = [s for s in optimiser_s if s is not None]
     bag_s = result.play.seconds if result.play is not None else None
-    return {'bag': bag.name, 'rate': rate, 'exit_code': result.exit_code, 'objects': len(result.records),
+    return {'bag': bag.name, 'rate': rate, 'exit_code': result.exit_code,
+            'failures': [f.describe().splitlines()[0] for f in result.failures], 'objects': len(result.records),
             'wall_s': round(result.seconds, 2), 'playback_s': round(bag_s, 2) if bag_s is not None else None,
             'stages': {
                 'association_ms_per_frame_mean': assoc.get('association_ms_mean'),
