@@ -91,7 +91,7 @@ class Launcher:
                  on_failure: str = 'stop', log_dir: str | os.PathLike | None = None,
                  output: TextIO | None = None, env: dict[str, str] | None = None,
                  max_restarts: int = 3, restart_delay: float = 1.0,
-                 sigint_timeout: float = 5.0, sigterm_timeout: float = 3.0,
+                 sigint_timeout: float = 10.0, sigterm_timeout: float = 3.0,
                  on_exit: Callable[[NodeExit], None] | None = None):
         if on_failure not in FAILURE_POLICIES:
             raise GraphError(f'unknown failure policy {on_failure!r}; use one of {", ".join(FAILURE_POLICIES)}')
