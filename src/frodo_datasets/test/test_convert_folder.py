@@ -93,3 +93,40 @@ def test_floor_fit_on_orb_landmarks_without_depth(tmp_path):
         assert np.allclose(T, A @ true, atol=1e-5)
     tilt = np.degrees(np.arccos(np.clip(A[2, 2], -1, 1)))
     assert tilt < 4.0 and abs(A[2, 3]) < 0.05  # up within 4 degrees, the floor at z = 0 near the origin
+
+
+def test_distorted_images_are_undistorted_to_the_same_pinhole(sequence, tmp_path):
+    """A plumb_bob camera (as TUM fr1/fr2): images distorted by the test come out as the pinhole renders."""
+    import cv2
+    folder = write_folder(sequence, tmp_path / 'run', 'tum')
+    K = sequence.K
+    dist = np.array([0.6, 0.3, 0.002, -0.003, 0.0])  # up to 12 px at the corners of 128x96
+    (folder / 'intrinsics.yaml').write_text(
+        f'fx: {K[0, 0]}\nfy: {K[1, 1]}\ncx: {K[0, 2]}\ncy: {K[1, 2]}\nwidth: 128\nheight: 96\n'
+        f'dist: {dist.tolist()}\ndepth_scale: 1000\n')
+    # distorted pixel -> the undistorted pixel it shows
+    u, v = np.meshgrid(np.arange(128, dtype=np.float64), np.arange(96, dtype=np.float64))
+    und = cv2.undistortPoints(np.stack([u.ravel(), v.ravel()], 1)[:, None], K, dist, P=K)[:, 0]
+    mx, my = und[:, 0].reshape(96, 128).astype(np.float32), und[:, 1].reshape(96, 128).astype(np.float32)
+    for k, rgb in enumerate(sequence.rgb):
+        distorted = cv2.remap(rgb, mx, my, cv2.INTER_LINEAR)
+        cv2.imwrite(str(folder / 'rgb' / f'{k:06d}.png'), cv2.cvtColor(distorted, cv2.COLOR_RGB2BGR))
+        for sub in ('depth', 'instances'):
+            img = cv2.imread(str(folder / sub / f'{k:06d}.png'), cv2.IMREAD_UNCHANGED)
+            cv2.imwrite(str(folder / sub / f'{k:06d}.png'), cv2.remap(img, mx, my, cv2.INTER_NEAREST))
+    convert_folder(folder, tmp_path / 'd.mcap', ConvertOptions(gravity='none'))
+    msgs = read_with_rosbags(tmp_path / 'd.mcap')
+    info = msgs['/camera/color/camera_info'][0][1]
+    assert list(info.d) == [0.0] * 5 and np.allclose(np.reshape(info.k, (3, 3)), K)
+    img = msgs['/camera/color/image_raw'][2][1]
+    out = np.frombuffer(bytes(img.data), np.uint8).reshape(96, 128, 3).astype(float)
+    inner = (slice(12, 84), slice(16, 112))  # the border holds pixels the distorted image did not see
+    distorted_err = np.abs(cv2.remap(sequence.rgb[2], mx, my, cv2.INTER_LINEAR).astype(float) - sequence.rgb[2])
+    err = np.abs(out - sequence.rgb[2])
+    # what is left is the blur of two bilinear resamplings of a textured render
+    assert err[inner].mean() < 0.6 * distorted_err[inner].mean()
+    inst = msgs['/camera/instances'][2][1]
+    pixels = np.frombuffer(bytes(inst.data), '<u2').reshape(96, 128)
+    truth = sequence.labels[2] > 0
+    distorted_masks = cv2.remap(truth.astype(np.uint8), mx, my, cv2.INTER_NEAREST) > 0
+    assert np.mean((pixels[inner] > 0) == truth[inner]) > 0.99 > np.mean(distorted_masks[inner] == truth[inner])
