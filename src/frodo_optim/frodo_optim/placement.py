@@ -29,8 +29,11 @@ Score (lower is better), per hypothesis over all views at once:
   for the mask -> points half of Es (which needs nearest neighbours per hypothesis) that penalises too
   small or displaced shapes, which E_out alone does not;
 - Eg_wide: the geometry term (landmarks -> nearest surface point) truncated at `truncation` (0.3 m, three
-  times the sparse stage's 10 cm: a wider basin), over the landmarks of a region covering every
-  hypothesis, the same set for all of them so that scores compare.
+  times the sparse stage's 10 cm: a wider basin), over the landmarks in the detections' visual hull
+  (`on_silhouettes`: on the mask in most views that see them) near any hypothesis, the same set for all
+  of them so that scores compare. The hull test, not a box, decides which landmarks are the object's: a
+  wrong box would otherwise select the wrong ones, and a too large one floor and clutter points that
+  reward too large placements.
 """
 from __future__ import annotations
 
@@ -105,6 +108,31 @@ def ray_centre(views, boxes: np.ndarray, border: np.ndarray, huber: float = 0.1)
         w = np.where(dist <= huber, 1.0, huber / np.maximum(dist, 1e-9))
     in_front = np.einsum('ni,ni->n', centre - o, d) > 0.1
     return centre if in_front.mean() > 0.5 else None
+
+
+def on_silhouettes(points: np.ndarray, views, batch, tolerance: float = 0.03, min_fraction: float = 0.75,
+                   min_views: int = 2) -> np.ndarray:
+    """The landmarks (N, 3) -> (M, 3) that lie in the object's visual hull, independent of any box.
+
+    A landmark is kept when, of the views whose image it projects into (in front of the camera), at least
+    `min_views` see it and at least `min_fraction` put it on the detection's mask: distance-transform value
+    <= `tolerance` box diagonals inside the view's crop (unknown pixels, i.e. other detections, count as on
+    the mask). Floor, wall, table-top clutter and neighbour landmarks fall off the mask in most views.
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    p = p[np.isfinite(p).all(1)]
+    if len(p) == 0:
+        return p.astype(np.float32)
+    with torch.no_grad():
+        uv, valid = batch.project(torch.as_tensor(p, dtype=torch.float32))                    # (V, N, 2), (V, N)
+        wh = torch.as_tensor(np.array([v.image_size for v in views], dtype=np.float32))[:, None]
+        in_image = valid & (uv >= 0).all(-1) & (uv < wh).all(-1)
+        g = (uv - batch.crop_lo) / (batch.crop_hi - batch.crop_lo) * 2 - 1
+        d = F.grid_sample(batch.dt, g[:, None], mode='bilinear', padding_mode='border', align_corners=False)[:, 0, 0]
+        on_mask = in_image & (g.abs() <= 1).all(-1) & (d <= tolerance)
+        seen, on = in_image.sum(0), on_mask.sum(0)
+        keep = (seen >= min_views) & (on >= min_fraction * seen)
+    return p[keep.numpy()].astype(np.float32)
 
 
 def _rotations(yaws: torch.Tensor) -> torch.Tensor:
@@ -188,12 +216,8 @@ def search(points_norm: np.ndarray, box, views, batch, slam_points: np.ndarray |
 
     marks_t = None
     if w_geometry > 0 and slam_points is not None and len(slam_points):
-        # the floor (landmarks below it are not the object's): the ray-centre hypothesis' bottom at its
-        # silhouette scale, else the input box's bottom
-        row = 1 if ray is not None else 0
-        bottom = centres[row][2] - (float(s_sil[row].median()) if row else scale_b) * extent[2] / 2
-        marks = _landmarks(slam_points, centres, float(scales.max()) * extent / 2, bottom + 0.02, rng,
-                           landmark_samples)
+        marks = _landmarks(on_silhouettes(slam_points, views, batch), centres, float(scales.max()) * extent / 2,
+                           rng, landmark_samples)
         marks_t = torch.as_tensor(marks, dtype=torch.float32) if len(marks) >= 5 else None
 
     def score(centre: torch.Tensor, log_s: torch.Tensor, yaw_idx: torch.Tensor) -> torch.Tensor:
@@ -276,17 +300,17 @@ def placed_box(points_norm: np.ndarray, yaw: float, translation, scale: float):
     return np.asarray(translation, dtype=np.float64) + scale * _yaw(yaw) @ ((lo + hi) / 2), scale * (hi - lo), float(yaw)
 
 
-def _landmarks(slam_points: np.ndarray, centres: list[np.ndarray], half_extent: np.ndarray, floor: float,
+def _landmarks(slam_points: np.ndarray, centres: list[np.ndarray], half_extent: np.ndarray,
                rng: np.random.Generator, limit: int) -> np.ndarray:
     """Landmarks (N, 3) that any hypothesis can reach: within the largest hypothesis' half-extent (plus the
-    0.3 m truncation) of a hypothesis centre and above `floor`; at most `limit`, drawn at random."""
+    0.3 m truncation) of a hypothesis centre; at most `limit`, drawn at random."""
     p = np.asarray(slam_points, dtype=np.float64)
     p = p[np.isfinite(p).all(1)]
     radius = float(np.linalg.norm(half_extent[:2])) + 0.3
     near = np.zeros(len(p), bool)
     for c in centres:
         near |= (np.linalg.norm(p[:, :2] - c[:2], axis=1) < radius) & (np.abs(p[:, 2] - c[2]) < half_extent[2] + 0.3)
-    p = p[near & (p[:, 2] > floor)]
+    p = p[near]
     if len(p) > limit:
         p = p[rng.choice(len(p), limit, replace=False)]
     return p.astype(np.float32)

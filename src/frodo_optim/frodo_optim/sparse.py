@@ -69,6 +69,7 @@ class SparseConfig:
     placement_search: bool = True     # also start from placement.py's hypotheses (a wrong box); false: box only
     placement_keep: int = 6           # hypotheses compared with the exact energy
     placement_truncation: float = 0.3  # metres, Eg truncation when scoring hypotheses (wider basin)
+    placement_margin: float = 0.05    # a hypothesis must end this fraction below the box start's energy to win
     seed: int = 0
 
 
@@ -340,11 +341,12 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
             pts0_np, (center, size, box_yaw), views, batch, slam_points, yaws, crop_margin=DT_MARGIN,
             w_silhouette=cfg.w_silhouette, w_geometry=cfg.w_geometry, truncation=cfg.placement_truncation,
             keep=cfg.placement_keep, seed=cfg.seed)]
-    # landmarks near the input box and near the best-scored hypothesis: one set for all candidates, so that their
-    # energies compare (near every hypothesis would add the neighbours' landmarks around the worse ones)
+    # landmarks near the input box and near the best-scored hypothesis, one set for all candidates so that their
+    # energies compare; with hypotheses only those in the detections' visual hull (placement.on_silhouettes):
+    # otherwise clutter, floor and neighbour points in a too large region favour the placement that covers them
     boxes = [(center, size, box_yaw)] + [placement.placed_box(pts0_np, y, t, s) for y, t, s, _ in candidates[4 + len(yaws):][:1]]
     near = [slam_points_near(slam_points, c, sz, y, margin=0.1 * float(np.max(sz)) + 0.05) for c, sz, y in boxes]
-    slam = near[0] if len(near) == 1 else np.unique(np.concatenate(near), axis=0)
+    slam = near[0] if len(near) == 1 else placement.on_silhouettes(np.unique(np.concatenate(near), axis=0), views, batch)
     slam_t = torch.as_tensor(slam) if len(slam) >= 5 and cfg.w_geometry > 0 else None
     scores = []
     with torch.no_grad():
@@ -358,8 +360,9 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
     input_energy = scores[first_input]
 
     # ---- joint optimisation of code, yaw, translation, log-scale (Adam, fixed iterations) from the best box start
-    # (the box-only initialisation) and from the best placement hypothesis, if any: the lower final energy wins,
-    # so a hypothesis replaces the box start only by ending lower
+    # (the box-only initialisation) and from the best placement hypothesis, if any. The hypothesis wins only by
+    # ending `placement_margin` below the box start: near ties (a wrong code fits the silhouettes about equally
+    # well at several scales) keep the box, gross box errors do not tie
     def descend(yaw0: float, t0, s0: float):
         z = z0.clone().requires_grad_(cfg.optimise_code)
         yaw = torch.tensor(yaw0, requires_grad=True)
@@ -394,7 +397,10 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
     n_box = 4 + len(yaws)
     starts = [int(np.argmin(scores[:n_box]))] + ([n_box + int(np.argmin(scores[n_box:]))] if len(scores) > n_box else [])
     runs = [(descend(*candidates[k][:3]), k) for k in starts]
-    (best, initial_terms, done), k_best = min(runs, key=lambda r: r[0][0][0] if r[0][0] is not None else np.inf)
+    final = [r[0][0][0] if r[0][0] is not None else np.inf for r in runs]
+    if len(runs) > 1 and np.isfinite(final[0]):
+        final[1] /= 1.0 - cfg.placement_margin
+    (best, initial_terms, done), k_best = runs[int(np.argmin(final))]
     yaw0, source = candidates[k_best][0], candidates[k_best][3]
     best_e, best_it, zb, yb, tb, lsb, terms_b = best
     s = math.exp(lsb)
