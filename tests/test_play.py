@@ -13,7 +13,7 @@ from sensor_msgs.msg import Image
 from visualization_msgs.msg import MarkerArray
 
 from frodo_bringup import cli
-from frodo_bringup.player import Player, PlayerError, parse_remaps
+from frodo_bringup.player import Backpressure, Player, PlayerError, parse_remaps
 from frodo_bringup.session import RosSession
 from frodo_bringup.testing import wait_until, write_contract_bag
 from frodo_common import topics
@@ -137,3 +137,34 @@ def test_a_bag_without_required_inputs_plays_with_a_warning_naming_them(tmp_path
     assert cli.main(['play', str(tmp_path / 'poses.mcap'), '--rate', '0', '--no-progress']) == 0
     assert (f'no message on required input(s) {topics.IMAGE}, {topics.CAMERA_INFO}'
             in capsys.readouterr().err)
+
+
+def test_rate0_with_backpressure_stays_within_the_backlog_of_a_slow_reader(tmp_path, session):
+    """A reader that takes an image every 20 ms gets all 60 frames: the player never runs more than
+    `max_backlog` images ahead, so KEEP_LAST queues never overwrite unread frames."""
+    write_contract_bag(tmp_path / 'a.mcap', frames=60, period=0.1)
+    taken, ahead = [], []
+
+    def slow_reader(msg):
+        time.sleep(0.02)
+        taken.append(msg.header.stamp)
+
+    session.node.create_subscription(Image, topics.IMAGE, slow_reader, topics.FRAME_QOS)
+    player = Player(session.node, tmp_path / 'a.mcap', rate=0, topics=[topics.IMAGE], progress=False)
+    assert wait_until(lambda: session.node.count_subscribers(topics.IMAGE) > 0, 5)
+
+    def frames_taken():
+        ahead.append(player._images_sent - len(taken))
+        return len(taken)
+
+    stats = player.play(backpressure=Backpressure(frames_taken, max_backlog=5))
+    assert wait_until(lambda: len(taken) == 60, 10)
+    assert max(ahead) <= 6 and stats.paced_seconds > 0 and not stats.pacing_abandoned
+
+
+def test_backpressure_gives_up_on_a_graph_that_stopped_taking_frames(tmp_path, session):
+    write_contract_bag(tmp_path / 'a.mcap', frames=10, period=0.1)
+    player = Player(session.node, tmp_path / 'a.mcap', rate=0, topics=[topics.IMAGE], progress=False)
+    stats = player.play(backpressure=Backpressure(lambda: 0, max_backlog=2, patience=0.3))
+    assert stats.pacing_abandoned and stats.published[topics.IMAGE] == 10
+    assert any('took no image' in p for p in player.problems)

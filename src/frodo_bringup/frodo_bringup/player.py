@@ -12,7 +12,7 @@ import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Iterable, Sequence
+from typing import Callable, Iterable, Sequence
 
 import yaml
 from mcap.reader import make_reader
@@ -43,11 +43,30 @@ class PlayStats:
     loops: int = 0
     seconds: float = 0.0
     interrupted: bool = False
+    paced_seconds: float = 0.0   # time held back by `Backpressure` (rate 0)
+    pacing_abandoned: bool = False  # the graph stopped taking frames for `patience` s; played on unpaced
 
     @property
     def total(self) -> int:
         """Messages published over all topics."""
         return sum(self.published.values())
+
+
+@dataclass
+class Backpressure:
+    """Flow control for rate 0: hold the next image while the graph has taken more than `max_backlog`
+    fewer images than were sent.
+
+    Why: at rate 0 a bag is published far faster than a loaded graph takes it; reliable KEEP_LAST
+    queues (depth 100 on both ends) then overwrite frames nobody has read yet, and whole stretches of a
+    bag never reach the optimiser. `frames_taken()` returns the image count of the slowest node (from
+    its `/diagnostics` counters) or None when unknown (no pacing). If that count does not move for
+    `patience` seconds (a node died or hangs), playback goes on unpaced and says so.
+    """
+
+    frames_taken: Callable[[], int | None]
+    max_backlog: int = 30
+    patience: float = 15.0
 
 
 def parse_remaps(items: Iterable[str]) -> dict[str, str]:
@@ -129,6 +148,8 @@ class Player:
         self.remaps = dict(remaps or {})
         self.problems: list[str] = []
         self._publishers: dict[str, Publisher] = {}
+        self._backpressure: Backpressure | None = None
+        self._images_sent = 0
         self._messages = self._select(topics, ground_truth, start_offset)
         self.problems += self.reader.problems
         if not self.reader.topics():
@@ -240,10 +261,13 @@ class Player:
         return [self.output_topic(t) for t in candidates if t in self._publishers]
 
     # ------------------------------------------------------------------ playback
-    def play(self, stop: threading.Event | None = None) -> PlayStats:
-        """Publish every selected message (again and again with `loop`) until done or `stop` is set."""
+    def play(self, stop: threading.Event | None = None, backpressure: Backpressure | None = None) -> PlayStats:
+        """Publish every selected message (again and again with `loop`) until done or `stop` is set;
+        at rate 0 with `backpressure`, no faster than the graph takes the images."""
         stop = stop or threading.Event()
         stats = PlayStats()
+        self._backpressure = backpressure if self.rate == 0 else None
+        self._images_sent = 0
         started = time.monotonic()
         with tqdm(total=None if self.loop else self.message_count, unit='msg', file=sys.stderr,
                   desc=self.reader.path.name, disable=not self.progress, dynamic_ncols=True) as bar:
@@ -273,12 +297,36 @@ class Player:
                     return
             elif stop.is_set():
                 return
+            if message.topic == topics.IMAGE and self._backpressure is not None:
+                self._wait_for_graph(stop, stats)
+                self._images_sent += 1
             if self._clock_pub is not None and message.log_time_ns > last_clock_ns:
                 self._clock_pub.publish(Clock(clock=ns_to_stamp(message.log_time_ns)))
                 last_clock_ns = message.log_time_ns
             self._publishers[message.topic].publish(message.data)
             stats.published[self.output_topic(message.topic)] += 1
             bar.update(1)
+
+    def _wait_for_graph(self, stop: threading.Event, stats: PlayStats) -> None:
+        """Block while the graph is more than `max_backlog` images behind (see `Backpressure`)."""
+        pressure = self._backpressure
+        started = last_change = time.monotonic()
+        last_taken = None
+        while not stop.is_set():
+            taken = pressure.frames_taken()
+            if taken is None or self._images_sent - taken <= pressure.max_backlog:
+                break
+            now = time.monotonic()
+            if taken != last_taken:
+                last_taken, last_change = taken, now
+            elif now - last_change > pressure.patience:
+                stats.pacing_abandoned = True
+                self._backpressure = None
+                self.problems.append(f'the graph took no image for {pressure.patience:.0f} s at image '
+                                     f'{self._images_sent}; playing the rest unpaced (frames may be lost)')
+                break
+            stop.wait(0.02)
+        stats.paced_seconds += time.monotonic() - started
 
     def _flush(self, timeout: float = 2.0) -> None:
         """Wait (bounded) until reliable subscribers acknowledged what was sent."""

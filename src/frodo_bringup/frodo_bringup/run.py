@@ -26,7 +26,7 @@ from visualization_msgs.msg import MarkerArray
 from frodo_bringup.graph import NODES, OPTIMISER, VIEWER, GraphNode
 from frodo_bringup.launcher import Launcher, NodeExit
 from frodo_bringup.outputs import summary_table, write_outputs
-from frodo_bringup.player import PlayStats, Player, PlayerError
+from frodo_bringup.player import Backpressure, PlayStats, Player, PlayerError
 from frodo_bringup.session import RosSession
 from frodo_common import topics
 from frodo_common.conversions import cloud_to_table
@@ -44,6 +44,10 @@ SUBSCRIPTION_SETTLE = 1.0
 STOP_GRACE = 20.0
 # Consecutive reports (after the bag ended) of an idle optimiser and unchanged node counters that mean "done".
 DONE_REPORTS = 2
+# Per node, the /diagnostics counter of colour images (or of the detections made from them) it has taken:
+# the slowest one paces playback at rate 0 (player.Backpressure).
+IMAGE_COUNTERS = {'detection_node': 'frames_received', 'association_node': 'frames_received',
+                  'shape_node': 'image_received', 'optim_node': 'image_received'}
 
 
 @dataclass
@@ -92,6 +96,14 @@ class OutputCollector:
             for status in msg.status:
                 reports = self._reports.setdefault(status.name, collections.deque(maxlen=DONE_REPORTS))
                 reports.append((now, {kv.key: kv.value for kv in status.values}))
+
+    def frames_taken(self, names: Sequence[str]) -> int | None:
+        """Images taken by the slowest of `names`, from the counters of their latest reports
+        (`IMAGE_COUNTERS`); None while none of them has reported one."""
+        with self._lock:
+            counts = [int(reports[-1][1].get(IMAGE_COUNTERS[name], 0))
+                      for name in names if name in IMAGE_COUNTERS and (reports := self._reports.get(name))]
+        return min(counts) if counts else None
 
     def missing_reports(self, names: Sequence[str]) -> list[str]:
         """Nodes in `names` that have not reported on /diagnostics yet (so may still be constructing)."""
@@ -196,6 +208,7 @@ def _play_and_wait(player: Player, collector: OutputCollector, launcher: Launche
         launcher.log(f'no diagnostics from {", ".join(missing)} after {startup_timeout:.0f} s; playing anyway')
     for problem in player.problems:
         launcher.log(f'bag: {problem}')
+    problems_before = list(player.problems)
     inputs = player.played_topics((topics.IMAGE, topics.CAMERA_INFO, topics.POSE, topics.INSTANCES,
                                      topics.SLAM_POINTS))
     unmatched = player.wait_for_subscribers(SUBSCRIPTION_MATCH_TIMEOUT, wanted=inputs, stop=stop,
@@ -204,7 +217,11 @@ def _play_and_wait(player: Player, collector: OutputCollector, launcher: Launche
         launcher.log(f'subscribers of {", ".join(unmatched)} not matched after {SUBSCRIPTION_MATCH_TIMEOUT:.0f} s '
                      '(QoS mismatch?); playing anyway')
     launcher.log(f'playing {player.message_count} messages ({player.duration:.1f} s of bag time)')
-    stats = player.play(stop)
+    stats = player.play(stop, Backpressure(lambda: collector.frames_taken(launcher.node_names)))
+    if stats.paced_seconds > 1:
+        launcher.log(f'playback waited {stats.paced_seconds:.1f} s for the graph to keep up')
+    for problem in player.problems[len(problems_before):]:
+        launcher.log(f'bag: {problem}')
     finished = time.monotonic()
     deadline = finished + timeout
     while not stop.is_set() and time.monotonic() < deadline:

@@ -1,6 +1,7 @@
 """Stamp-matched frame cache: collects the messages of one frame (same header stamp) with bounded memory."""
 from __future__ import annotations
 
+import time
 from collections import Counter, OrderedDict
 from dataclasses import dataclass, field
 from typing import Any, Iterable
@@ -12,6 +13,7 @@ class Frame:
 
     stamp_ns: int
     parts: dict[str, Any] = field(default_factory=dict)
+    received: float = field(default_factory=time.monotonic)   # wall clock of its first part
 
     def has(self, names: Iterable[str]) -> bool:
         """True when every named part is present."""
@@ -28,13 +30,18 @@ class FrameCache:
     What never completes is accounted for, so a node can say what it missed (a node started late, a
     silent upstream topic): frames evicted incomplete (`evicted_incomplete`, their missing parts in
     `missing_parts`) and, via `missed()`, frames still held incomplete although newer stamps have
-    arrived `stale_after_ns` later. A part received twice for one stamp counts in `duplicates`.
+    arrived `stale_after_ns` later and the frame has waited `stale_after_s` of wall-clock time (a bag
+    played as fast as possible spans seconds of stamps in a fraction of a second, so stamps alone would
+    call a part that is merely queued "missed"). A part received twice for one stamp counts in
+    `duplicates`.
     """
 
-    def __init__(self, required: Iterable[str], capacity: int = 400, stale_after_ns: int = 2_000_000_000):
+    def __init__(self, required: Iterable[str], capacity: int = 400, stale_after_ns: int = 2_000_000_000,
+                 stale_after_s: float = 5.0):
         self.required = tuple(required)
         self.capacity = int(capacity)
         self.stale_after_ns = int(stale_after_ns)
+        self.stale_after_s = float(stale_after_s)
         self.frames: OrderedDict[int, Frame] = OrderedDict()
         self.completed: set[int] = set()
         self.evicted_incomplete = 0
@@ -68,13 +75,15 @@ class FrameCache:
 
     def missed(self) -> tuple[int, Counter]:
         """(frames that never completed, {part: how many of them lack it}): evicted incomplete ones plus
-        held incomplete ones older than the newest stamp by more than `stale_after_ns`."""
+        held incomplete ones older than the newest stamp by more than `stale_after_ns` and held for
+        `stale_after_s` seconds."""
         parts = Counter(self.missing_parts)
         count = self.evicted_incomplete
         if self.newest_ns is not None:
             limit = self.newest_ns - self.stale_after_ns
+            waited_since = time.monotonic() - self.stale_after_s
             for stamp, frame in list(self.frames.items()):
-                if stamp < limit and stamp not in self.completed:
+                if stamp < limit and stamp not in self.completed and frame.received <= waited_since:
                     count += 1
                     parts.update(n for n in self.required if n not in frame.parts)
         return count, parts

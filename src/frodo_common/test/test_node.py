@@ -95,7 +95,7 @@ def test_diagnostics_keep_their_period_while_every_callback_is_busy():
 class _Cached(FrodoNode):
     def __init__(self):
         super().__init__('cached_node', ())
-        self.cache = FrameCache(('image', 'detections'), stale_after_ns=10)
+        self.cache = FrameCache(('image', 'detections'), stale_after_ns=10, stale_after_s=0)
 
 
 def test_frames_a_node_got_only_in_part_are_reported_with_their_missing_parts():
