@@ -4,7 +4,7 @@
     frodo convert tum rgbd_dataset_freiburg1_xyz fr1_xyz.mcap --views 35
     frodo convert scannet scans/scene0000_00 scene0000_00.mcap --every 10 --resize 640x480
     frodo convert redwood loft loft.mcap --trajectory loft.log --up 0,1,0
-    frodo convert folder my_run my_run.mcap --landmarks features
+    frodo convert folder my_run my_run.mcap --gravity camera
 """
 from __future__ import annotations
 
@@ -82,7 +82,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     world.add_argument('--up', type=_vector, default=None, metavar='X,Y,Z',
                        help="the dataset world's up vector, rotated to +z (sets --gravity up)")
     world.add_argument('--landmarks', choices=LANDMARK_MODES, default='auto',
-                       help='/slam/points from depth, from ORB features, or none (auto: depth if present)')
+                       help='/slam/points from depth, from ORB features, or none (auto: depth if present, else none)')
     world.add_argument('--slam-every', type=int, default=5, help='publish the landmark map every N frames (5)')
     world.add_argument('--landmark-stride', type=int, default=4, help='depth landmarks: every N-th pixel (4)')
     world.add_argument('--landmark-voxel', type=float, default=0.03, help='landmark pooling voxel, m (0.03)')

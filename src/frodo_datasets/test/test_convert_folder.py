@@ -44,13 +44,15 @@ def test_every_pose_format_gives_the_true_poses_and_instances(sequence, tmp_path
     assert len(msgs['/slam/points']) == 2 and 'depth' in summary.landmarks
 
 
-def test_without_depth_landmarks_come_from_features(sequence, tmp_path):
+def test_without_depth_landmarks_are_opt_in_features(sequence, tmp_path):
     folder = write_folder(sequence, tmp_path / 'run', 'tum')
     shutil.rmtree(folder / 'depth')
     summary = convert_folder(folder, tmp_path / 'rgb_only.mcap')
     msgs = read_with_rosbags(tmp_path / 'rgb_only.mcap')
-    assert '/camera/depth/image_raw' not in msgs and summary.landmarks.startswith('features')
+    assert '/camera/depth/image_raw' not in msgs and '/slam/points' not in msgs and summary.landmarks == 'none'
     assert 'camera mean up' in summary.gravity  # no depth: gravity from the cameras
+    summary = convert_folder(folder, tmp_path / 'orb.mcap', ConvertOptions(landmarks='features'))
+    assert summary.landmarks.startswith('features') and read_with_rosbags(tmp_path / 'orb.mcap')['/slam/points']
 
 
 def test_clear_errors_and_nothing_half_written(sequence, tmp_path):

@@ -142,8 +142,8 @@ def write_bag(source: Source, output: str | os.PathLike, options: ConvertOptions
     K_out, size = output_camera(source, options, with_instances)
     T_align, gravity = gravity_alignment(source, picks, options)
     landmark_mode = options.landmarks
-    if landmark_mode == 'auto':
-        landmark_mode = 'depth' if with_depth else 'features'
+    if landmark_mode == 'auto':  # ORB landmarks cost accuracy on the measured scenes: opt-in only
+        landmark_mode = 'depth' if with_depth else 'none'
     if landmark_mode == 'depth' and not with_depth:
         raise ConvertError('landmarks from depth need depth images; use --landmarks features')
     landmarks = (DepthLandmarks(options.landmark_stride, options.landmark_voxel, options.landmark_min_views,
