@@ -216,14 +216,17 @@ def pool(reports: list[dict]) -> dict:
     }
 
 
-def table(eval_set: EvalSet, out: Path, variants: list[str], markdown: bool = False) -> str:
-    """Pooled table, one row per variant with results (partial sets say how many scenes they cover)."""
+def table(eval_set: EvalSet, out: Path, variants: list[str], markdown: bool = False,
+          scenes: str | None = None) -> str:
+    """Pooled table, one row per variant with results (partial sets say how many scenes they cover);
+    `scenes` (e.g. '0-3') restricts it to those rooms, to compare variants on the same rooms."""
     def fmt(v, spec):
         return '-' if v is None else format(v, spec)
+    names = {name for name, _, _ in _select(eval_set.scenes(), scenes)}
     rows = []
     for variant in variants:
         files = sorted((out / 'results' / variant).glob(f'{eval_set.name}-*.json'))
-        files = [f for f in files if f.stem.rsplit('-', 1)[0] == eval_set.name]
+        files = [f for f in files if f.stem in names]
         if not files:
             continue
         s = pool([json.loads(f.read_text()) for f in files])
@@ -301,7 +304,7 @@ def main(argv: list[str] | None = None) -> int:
         for variant in variants:
             print(f'{variant}:\n{family_table(eval_set, args.out, variant)}')
     else:
-        print(table(eval_set, args.out, variants, args.markdown))
+        print(table(eval_set, args.out, variants, args.markdown, args.scenes))
     return 0
 
 
