@@ -5,7 +5,8 @@ Times `Associator.add_frame` (segments, DP-means step with same-frame exclusivit
 merges, confirmation, pruning with the current boxes: everything before a frame's associations are published)
 and, separately, `Associator.refine_boxes` (at most one 3D box fit per frame, run after publishing), and their
 sum per frame. `--scene walk` (default): a box-world walk where all 10 objects stay in view; `--scene handheld`:
-35 keyframes of the handheld kitchen (`frodo_association.handheld`, real-like masks and drift) with depth, also
+35 keyframes of the handheld kitchen (`frodo_association.handheld`, real-like masks and drift) with depth and
+`KEYFRAME_SETTINGS`, also
 timing the surface depths from depth (`evidence.surface_depths`). Prints the machine it ran on.
 
 Usage: python bench/bench_association.py [--scene walk|handheld] [--frames 300] [--objects 10] [--seed 0]
@@ -19,6 +20,7 @@ import time
 
 import numpy as np
 
+from frodo_association.config import KEYFRAME_SETTINGS, AssociationConfig
 from frodo_association.evidence import depth_image_to_metres, surface_depths
 from frodo_association.synthetic import make_scene
 from frodo_association.tracker import Associator, detections_from_instances
@@ -52,7 +54,7 @@ def main() -> int:
         scene = make_handheld_scene(args.seed, **HANDHELD_CONDITIONS['real-like'])
     dets = [detections_from_instances(f.instances) for f in scene.frames]
     in_view = np.array([len(labels) for labels, _ in dets])
-    assoc = Associator()
+    assoc = Associator(AssociationConfig(**KEYFRAME_SETTINGS)) if args.scene == 'handheld' else Associator()
     t_evidence, t_assoc, t_refine = [], [], []
     for f, (labels, boxes) in zip(scene.frames, dets):
         surface = None

@@ -18,6 +18,7 @@ Usage: python -m frodo_association.evaluate [--seeds 100-119] [--objects 2-5] [-
        [--layout walk|dense|furniture] [--conditions NAME,...] [--no-ablation] [--json OUT]
        python -m frodo_association.evaluate --layout handheld [--seeds 100-105] [--conditions real-like,...]
            [--variants base,...] [--evidence depth,landmarks|depth|landmarks|none] [--before]
+           (with config.KEYFRAME_SETTINGS; --before: BEFORE_KEYFRAMES and no evidence)
            (keyframes of a handheld kitchen capture, `handheld.py`; one row per condition and variant with
            recall, false tracks per scene (duplicates included) and the median centre error)
        python -m frodo_association.evaluate --bags A.mcap [B.mcap ...] [--pool] [--conditions NAME,...]
@@ -36,7 +37,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from frodo_association.boxes import box_iou, canonical_yaw, clip_boxes
-from frodo_association.config import AssociationConfig
+from frodo_association.config import KEYFRAME_SETTINGS, AssociationConfig
 from frodo_association.evidence import depth_image_to_metres, surface_depths
 from frodo_association.tracker import Associator
 from frodo_association.synthetic import (BoxObject, SynthFrame, SynthScene, add_noise, make_furniture_scene,
@@ -362,7 +363,7 @@ def main(argv: list[str] | None = None) -> int:
     out = {'machine': f'{platform.node()} ({platform.processor() or platform.machine()})', 'results': {}}
     if args.layout == 'handheld':
         evidence = () if args.before or args.evidence == 'none' else tuple(args.evidence.split(','))
-        cfg = replace(base, **BEFORE_KEYFRAMES) if args.before else base
+        cfg = replace(base, **BEFORE_KEYFRAMES) if args.before else replace(base, **KEYFRAME_SETTINGS)
         seeds = _range(args.seeds)
         print(f'# association evaluation: handheld keyframes, seeds {args.seeds}, {out["machine"]}'
               + (' (settings before the keyframe front end)' if args.before else ''))
