@@ -137,7 +137,8 @@ def test_shape_and_optimiser_nodes_reconstruct_an_object_from_the_demo_bag():
         state = conv.cloud_to_table(states[-1])
         assert list(state['object_id']) == [OBJECT_ID] and STAGES[state['stage'][0]] == 'dense'
         assert STAGE_REASONS[state['stage_reason'][0]] == 'all stages done'
-        stages = [STAGES[t['stage'][0]] for t in map(conv.cloud_to_table, states) if len(t)]
+        stages = [STAGES[t['stage'][t['object_id'] == OBJECT_ID][0]] for t in map(conv.cloud_to_table, states)
+                  if (t['object_id'] == OBJECT_ID).any()]
         # each stage is published as it completes: fused, then sparse, then dense
         assert stages.index('fused') < stages.index('sparse') < stages.index('dense')
         assert int(status('optim_node')['views_held']) >= 4
