@@ -24,9 +24,12 @@ detections in a bounded set of views:
 Initialisation (paper: "exhaustive search for the best rotation about the gravity direction"):
 translation and scale from the association's 3D box (as `core.place_from_box`: scale = box height over
 the decoded shape's height, the shape's box centre at the box centre), yaw = the best of
-`yaw_candidates` evenly spaced angles under the energy above with the initial code. Then code, yaw,
-translation and log-scale are optimised jointly with Adam for a fixed number of iterations; the state
-with the lowest energy seen (the initial one included) is returned, so a diverging run falls back.
+`yaw_candidates` evenly spaced angles under the energy above with the initial code; next to these, the
+placement hypotheses of `placement.py` (centre and scale from the detections, for a wrong box). Then code,
+yaw, translation and log-scale are optimised jointly with Adam for a fixed number of iterations, from the
+best box start and the best hypothesis (which must end `placement_margin` lower to win); the state with
+the lowest energy seen (the initial one included) is returned, so a diverging run falls back, and the
+input box placement is returned with a reason when nothing lower than it is found.
 """
 from __future__ import annotations
 
