@@ -17,8 +17,9 @@ Variants (`VARIANTS`) are the same rooms under different conditions: `full` (eve
 keyframes), `full100` (every condition, 100 views), and one condition at a time on top of `plain` (the
 project's usual regime: a room walk of 60 consecutive clean frames): `truncation` (close-range hand-held
 path, 100 views, clean), `keyframes` (the same path at 35 keyframes), `occlusion` (chairs pushed under
-tables, clutter on tables), `masks` (detector-like mask errors), `drift` (pose noise and drift), `camera`
-(exposure, vignetting, sensor noise, ambient occlusion, soft shadows, specular highlights).
+tables, clutter on tables), `masks` (detector-like mask errors), `drift` (pose noise and drift), `landmarks`
+(SLAM points only on textured surfaces, sparser and noisier), `camera` (exposure, vignetting, sensor noise,
+ambient occlusion, soft shadows, specular highlights).
 
 Bags are not committed; `build` regenerates them deterministically (same seed -> same scene and frames).
 `run` calls `frodo run` on every bag that has no result yet (results/<variant>/<scene>.json, so an
@@ -91,6 +92,8 @@ VARIANTS: dict[str, Callable[[SynthConfig], SynthConfig]] = {
     'occlusion': _variant(**_PLAIN, tuck_chairs=_HANDHELD['tuck_chairs'], clutter=_HANDHELD['clutter']),
     'masks': _variant(**_PLAIN, mask_noise=_HANDHELD['mask_noise']),
     'drift': _variant(**_PLAIN, pose_noise=_WALK_DRIFT),
+    'landmarks': _variant(**_PLAIN, slam_texture_min=_HANDHELD['slam_texture_min'],
+                          slam_density=_HANDHELD['slam_density'], slam_noise_m=_HANDHELD['slam_noise_m']),
     'camera': _variant(**_PLAIN, realism=_HANDHELD['realism'],
                        capture=replace(_HANDHELD['capture'], motion_blur_s=0.0, depth_noise=False)),
 }

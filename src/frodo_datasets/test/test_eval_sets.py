@@ -33,8 +33,10 @@ def test_variants_change_one_condition_at_a_time():
     assert configs['full']['scene'] == 'handheld' and configs['full']['frames'] == 35
     assert configs['full100']['frames'] == 100
     plain = configs['plain']
-    changed = {v: {k for k in plain if configs[v][k] != plain[k]} for v in ('occlusion', 'masks', 'drift', 'camera')}
+    changed = {v: {k for k in plain if configs[v][k] != plain[k]}
+               for v in ('occlusion', 'masks', 'drift', 'landmarks', 'camera')}
     assert changed == {'occlusion': {'tuck_chairs', 'clutter'}, 'masks': {'mask_noise'}, 'drift': {'pose_noise'},
+                       'landmarks': {'slam_texture_min', 'slam_density', 'slam_noise_m'},
                        'camera': {'realism', 'capture'}}
     assert {k for k in plain if configs['truncation'][k] != configs['keyframes'][k]} == {'frames'}
 
