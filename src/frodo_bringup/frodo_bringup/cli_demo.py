@@ -38,7 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--synth', type=int, default=None, metavar='SEED',
                         help='first render a new walk scene with this seed into OUT/scene.mcap and use it')
     parser.add_argument('--params', action='append', default=[], metavar='FILE',
-                        help='ROS 2 parameter YAML overriding the defaults (repeatable)')
+                        help='ROS 2 parameter YAML overriding the defaults, or a shipped preset by name (keyframes: input of few views far apart) (repeatable)')
     parser.add_argument('--timeout', type=float, default=300.0, metavar='S',
                         help='wait at most S s after the bag for the optimiser (default: %(default)s)')
     parser.add_argument('--no-viewer', action='store_true', help=f'do not record OUT/{RECORDING_FILE}')

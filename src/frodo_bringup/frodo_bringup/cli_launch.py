@@ -16,7 +16,7 @@ from frodo_bringup.session import RosSession, stop_on_signals
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `frodo launch`."""
     parser.add_argument('--params', action='append', default=[], metavar='FILE',
-                        help='ROS 2 parameter YAML overriding the defaults (repeatable; later files win); '
+                        help='ROS 2 parameter YAML overriding the defaults, or a shipped preset by name (keyframes) (repeatable; later files win); '
                              'see `frodo params` for every parameter')
     parser.add_argument('--nodes', metavar='A,B', type=lambda s: s.split(','),
                         help=f'comma-separated subset of the graph ({",".join(n.name for n in NODES)}) '

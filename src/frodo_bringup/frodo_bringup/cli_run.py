@@ -16,7 +16,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--out', required=True, metavar='DIR',
                         help='output directory: objects.json, meshes/<id>_<class>.ply, logs/')
     parser.add_argument('--params', action='append', default=[], metavar='FILE',
-                        help='ROS 2 parameter YAML overriding the defaults (repeatable)')
+                        help='ROS 2 parameter YAML overriding the defaults, or a shipped preset by name (keyframes: input of few views far apart) (repeatable)')
     parser.add_argument('--timeout', type=float, default=300.0, metavar='S',
                         help='after the bag has played, wait at most S s for the optimiser to finish '
                              '(default: %(default)s)')

@@ -7,6 +7,7 @@ nodes pull in heavy dependencies (torch).
 from __future__ import annotations
 
 import importlib
+import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -127,6 +128,23 @@ def share_file(relative: str) -> Path:
             return base / relative
         searched.append(str(base))
     raise GraphError(f'{PACKAGE}: shipped file {relative} not found (looked in {", ".join(searched)})')
+
+
+def resolve_params_file(name: str | os.PathLike) -> Path:
+    """A parameter file path, or the name of a shipped preset (`keyframes` -> `config/keyframes.yaml`)."""
+    path = Path(name)
+    if path.is_file() or path.suffix or len(path.parts) > 1:
+        return path
+    try:
+        return share_file(f'config/{path.name}.yaml')
+    except GraphError:
+        return path
+
+
+def shipped_presets() -> list[str]:
+    """Names of the shipped parameter presets (`config/*.yaml` besides the defaults in frodo.yaml)."""
+    folder = share_file('config/frodo.yaml').parent
+    return sorted(p.stem for p in folder.glob('*.yaml') if p.stem != 'frodo')
 
 
 def source_config_path() -> Path:

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable, Sequence, TextIO
 
-from frodo_bringup.graph import GraphError, GraphNode
+from frodo_bringup.graph import GraphError, GraphNode, resolve_params_file, shipped_presets
 
 FAILURE_POLICIES = ('stop', 'restart', 'ignore')
 TAIL_LINES = 20
@@ -97,10 +97,11 @@ class Launcher:
             raise GraphError(f'unknown failure policy {on_failure!r}; use one of {", ".join(FAILURE_POLICIES)}')
         if not nodes:
             raise GraphError('no nodes to launch')
-        self.params_files = [Path(p) for p in params_files]
+        self.params_files = [resolve_params_file(p) for p in params_files]
         for path in self.params_files:
             if not path.is_file():
-                raise GraphError(f'parameter file not found: {path}')
+                raise GraphError(f'parameter file not found: {path} (a file, or a shipped preset: '
+                                 f'{", ".join(shipped_presets())})')
         self.on_failure = on_failure
         self.log_dir = Path(log_dir) if log_dir is not None else None
         self.output = output if output is not None else sys.stdout
