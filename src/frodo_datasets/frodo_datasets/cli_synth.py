@@ -114,8 +114,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     extra = parser.add_argument_group('extra output')
     extra.add_argument('--depth', action='store_true', help='also write aligned depth (16UC1 mm)')
     extra.add_argument('--depth-topic', default=None,
-                       help='depth topic (default /camera/aligned_depth_to_color/image_raw; CONTRACT v1.1: '
-                            '/camera/depth/image_raw)')
+                       help='depth topic (default: CONTRACT v1.1 /camera/depth/image_raw, where the nodes listen)')
     extra.add_argument('--depth-noise', action=argparse.BooleanOptionalAction, default=None,
                        help='Kinect-like depth noise and holes (the handheld preset turns it on)')
     extra.add_argument('--no-slam', action='store_true', help='do not write /slam/points')

@@ -8,7 +8,7 @@ Topics written (all stamps = frame stamp = log time; frames advance by 1/fps fro
 | `/camera/color/image_raw` | Image `rgb8` | rendered colour (optionally with pixel noise) |
 | `/camera/pose` | PoseStamped, frame `world` | T_world_camera (optionally noisy; rendering uses the true pose) |
 | `/camera/instances` | Image `16UC1` | `coco_id * 256 + k`, k a random per-frame number (not the object id) |
-| `/camera/aligned_depth_to_color/image_raw` | Image `16UC1` (mm) | only with `depth=True` |
+| `/camera/depth/image_raw` | Image `16UC1` (mm), registered to colour (CONTRACT v1.1) | only with `depth=True` |
 | `/slam/points` | PointCloud2 x,y,z float32 | noisy landmarks seen in >= `slam_min_views` frames so far; the whole map every `slam_every` frames and at the end |
 | `/ground_truth/objects` | MarkerArray (transient local, depth 1) | one TRIANGLE_LIST per object at the first stamp: ns = class, id = ground-truth id, world vertices |
 
@@ -36,7 +36,7 @@ from frodo_datasets.realcapture import (CaptureEffects, blur_vector, distort, di
 from frodo_datasets.render import Light, Realism, Renderer, intrinsics
 from frodo_datasets.scene import HandheldPath, Scene, compose_scene, trajectory
 
-DEPTH_TOPIC = '/camera/aligned_depth_to_color/image_raw'
+DEPTH_TOPIC = '/camera/depth/image_raw'   # CONTRACT v1.1: the graph's nodes listen here
 CAMERA_FRAME = 'camera_color_optical_frame'
 DEFAULT_START_NS = 1_700_000_000_000_000_000  # 2023-11-14T22:13:20Z
 SIDECAR_SUFFIX = '.gt.json'
