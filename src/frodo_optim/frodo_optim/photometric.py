@@ -67,14 +67,9 @@ def _resample(img: np.ndarray, x0: int, y0: int, side: int, size: int, mode: str
     return out.round().clamp(0, 255).numpy().astype(np.uint8)
 
 
-def dense_view_from_frame(K, T_world_camera, mask: np.ndarray, unknown: np.ndarray | None, rgb: np.ndarray | None,
-                          depth_m: np.ndarray | None = None, size: int = 128, margin: float = 0.25,
-                          depth_points: int = 128, rng: np.random.Generator | None = None) -> DenseView | None:
-    """DenseView of one detection from full-resolution data; None when the mask or camera is unusable.
-
-    mask (H, W) bool; unknown (H, W) bool (other detections); rgb (H, W, 3) uint8 or None;
-    depth_m (H, W) float metres registered to the colour image (0 / NaN = none) or None.
-    """
+def checked_view_inputs(K, T_world_camera, mask: np.ndarray):
+    """(K (3, 3), T (4, 4) float64, mask bool (H, W), ys, xs of its pixels), or None when the camera is not
+    finite or the mask is not 2-D or has fewer than 4 pixels (a view no stage can use)."""
     mask = np.asarray(mask, dtype=bool)
     K = np.asarray(K, dtype=np.float64)
     T = np.asarray(T_world_camera, dtype=np.float64)
@@ -83,6 +78,21 @@ def dense_view_from_frame(K, T_world_camera, mask: np.ndarray, unknown: np.ndarr
     ys, xs = np.nonzero(mask)
     if len(xs) < 4:
         return None
+    return K, T, mask, ys, xs
+
+
+def dense_view_from_frame(K, T_world_camera, mask: np.ndarray, unknown: np.ndarray | None, rgb: np.ndarray | None,
+                          depth_m: np.ndarray | None = None, size: int = 128, margin: float = 0.25,
+                          depth_points: int = 128, rng: np.random.Generator | None = None) -> DenseView | None:
+    """DenseView of one detection from full-resolution data; None when the mask or camera is unusable.
+
+    mask (H, W) bool; unknown (H, W) bool (other detections); rgb (H, W, 3) uint8 or None;
+    depth_m (H, W) float metres registered to the colour image (0 / NaN = none) or None.
+    """
+    checked = checked_view_inputs(K, T_world_camera, mask)
+    if checked is None:
+        return None
+    K, T, mask, ys, xs = checked
     x0, y0, x1, y1 = xs.min(), ys.min(), xs.max() + 1, ys.max() + 1
     bw, bh = float(x1 - x0), float(y1 - y0)
     # square pixel window (one scale for u and v); pixel i covers [i - 0.5, i + 0.5)

@@ -42,7 +42,7 @@ import torch
 import torch.nn.functional as F
 from scipy.ndimage import distance_transform_edt
 
-from frodo_optim.photometric import photometric_energy
+from frodo_optim.photometric import checked_view_inputs, photometric_energy
 
 from frodo_optim import placement
 
@@ -126,14 +126,10 @@ def view_from_mask(K, T_world_camera, mask: np.ndarray, n_samples: int = 128, un
 
     unknown: optional bool (H, W), pixels whose state is unknown (other detections, possible occluders).
     """
-    mask = np.asarray(mask, dtype=bool)
-    K = np.asarray(K, dtype=np.float64)
-    T = np.asarray(T_world_camera, dtype=np.float64)
-    if mask.ndim != 2 or K.shape != (3, 3) or T.shape != (4, 4) or not (np.isfinite(K).all() and np.isfinite(T).all()):
+    checked = checked_view_inputs(K, T_world_camera, mask)
+    if checked is None:
         return None
-    ys, xs = np.nonzero(mask)
-    if len(xs) < 4:
-        return None
+    K, T, mask, ys, xs = checked
     rng = rng if rng is not None else np.random.default_rng(0)
     h, w = mask.shape
     x0, y0, x1, y1 = xs.min(), ys.min(), xs.max() + 1, ys.max() + 1
