@@ -12,6 +12,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from frodo_bringup import cli
 from frodo_bringup.readiness import LAUNCH_STATUS, launch_ready
 from frodo_bringup.session import RosSession
+from frodo_bringup.testing import write_contract_bag
 from frodo_common import topics
 
 STUB_ARGS = ['--nodes', 'alpha,beta', '--add-node', 'alpha=frodo_bringup.stub_node',

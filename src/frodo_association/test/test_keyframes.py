@@ -8,7 +8,7 @@ from frodo_association.evidence import depth_image_to_metres, landmark_depths, m
 from frodo_association.segments import complete_truncated_boxes, point_segment_distance
 from frodo_association.synthetic import BoxObject, render_instances
 from frodo_association.tracker import Associator, detections_from_instances
-from frodo_common.geometry import invert_transform, look_at
+from frodo_common.geometry import look_at
 
 CHAIR = 62
 K = np.array([[300.0, 0, 159.5], [0, 300.0, 119.5], [0, 0, 1]])
