@@ -35,3 +35,18 @@ def test_up_ready_late_and_silent():
         monitor.tick()
         assert monitor.up() == [] and not monitor.ready
         assert lines[-1] == 'graph not ready: waiting for a, b'
+
+
+def test_a_node_up_before_frames_is_not_late_when_the_tick_runs_after_them():
+    """The late count is taken when a process first reports, not when the (possibly delayed) tick runs."""
+    lines: list[str] = []
+    with RosSession('frodo_test_readiness_delay') as session:
+        monitor = GraphMonitor(session.node, ['a', 'b'], lines.append, pids=lambda: {'a': 1, 'b': 2}, settle=0.0,
+                               period=3600, publish=False)
+        monitor._on_diagnostics(_report('a', pid=1, frames_received=0))
+        monitor._on_diagnostics(_report('b', pid=2, frames_received=0))
+        monitor._on_diagnostics(_report('a', pid=1, frames_received=12))   # frames flow before any tick
+        monitor._on_diagnostics(_report('b', pid=2, frames_received=12))
+        monitor.tick()
+        assert monitor.ready and monitor.late == {}
+        assert not any(line.startswith('WARNING') for line in lines), lines

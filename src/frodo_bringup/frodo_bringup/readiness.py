@@ -50,6 +50,9 @@ class GraphMonitor:
         self._latest: dict[str, dict[str, str]] = {}  # node -> key/values of its last report
         self._heard: dict[str, float] = {}             # node -> when its last report came (monotonic)
         self._up_pid: dict[str, str] = {}              # node -> pid of the process seen up
+        # node -> (pid, frames other nodes had received) at that process's first report: taken on arrival, not
+        # at the next tick, so a loaded executor that runs the tick late does not call an early node late.
+        self._joined: dict[str, tuple[str, int]] = {}
         self._subs: dict[str, tuple[str, ...]] = {}
         self._subs_since = time.monotonic()
         self._lock = threading.Lock()
@@ -63,7 +66,11 @@ class GraphMonitor:
         with self._lock:
             for status in msg.status:
                 if status.name in self.names:
-                    self._latest[status.name] = {kv.key: kv.value for kv in status.values}
+                    values = {kv.key: kv.value for kv in status.values}
+                    pid = values.get('pid', '')
+                    if self._joined.get(status.name, ('',))[0] != pid:
+                        self._joined[status.name] = (pid, self._frames_received_by_others(status.name))
+                    self._latest[status.name] = values
                     self._heard[status.name] = time.monotonic()
 
     def _current_pid(self, name: str) -> str | None:
@@ -75,7 +82,10 @@ class GraphMonitor:
     def frames_entered(self, excluding: str | None = None) -> int:
         """Largest `frames_received` reported by any watched node other than `excluding`."""
         with self._lock:
-            counts = [int(v.get('frames_received', '0') or 0) for n, v in self._latest.items() if n != excluding]
+            return self._frames_received_by_others(excluding)
+
+    def _frames_received_by_others(self, excluding: str | None) -> int:
+        counts = [int(v.get('frames_received', '0') or 0) for n, v in self._latest.items() if n != excluding]
         return max(counts, default=0)
 
     def up(self) -> list[str]:
@@ -104,10 +114,13 @@ class GraphMonitor:
         """Update readiness and late joiners; log transitions; publish the launcher's status."""
         up = self.up()
         for name in up:
-            pid = self._latest.get(name, {}).get('pid', '')
+            with self._lock:
+                pid = self._latest.get(name, {}).get('pid', '')
+                joined_pid, missed = self._joined.get(name, ('', 0))
             if self._up_pid.get(name) != pid:
                 self._up_pid[name] = pid
-                missed = self.frames_entered(excluding=name)
+                if joined_pid != pid:
+                    missed = self.frames_entered(excluding=name)
                 if missed:
                     self.late[name] = missed
                     self.log(f'WARNING: {name} came up after {missed} frame(s) had entered the graph and missed '
