@@ -22,7 +22,10 @@ Usage: python -m frodo_association.evaluate [--seeds 100-119] [--objects 2-5] [-
            (keyframes of a handheld kitchen capture, `handheld.py`; one row per condition and variant with
            recall, false tracks per scene (duplicates included) and the median centre error)
        python -m frodo_association.evaluate --bags A.mcap [B.mcap ...] [--pool] [--conditions NAME,...]
-           (contract bags with ground truth; by default clean, one row per bag; --pool: one row per condition)
+           [--keyframes] [--set NAME=VALUE,...] [--evidence ...] [--trace]
+           (contract bags with ground truth, their /slam/points maps giving surface depths; by default clean,
+           one row per bag; --pool: one row per condition; --keyframes: KEYFRAME_SETTINGS; --set: other
+           AssociationConfig values; --trace: per ground-truth object, why it is or is not published)
 """
 from __future__ import annotations
 
@@ -99,12 +102,14 @@ class SceneResult:
     assoc_ms: list = None
     refine_ms: list = None
     boxes: list = None
+    trace: list = None
 
 
 def run_scene(scene: SynthScene, cfg: AssociationConfig, filt: FilterConfig,
-              evidence: tuple[str, ...] = ('depth', 'landmarks')) -> SceneResult:
+              evidence: tuple[str, ...] = ('depth', 'landmarks'), trace: bool = False) -> SceneResult:
     """Associate every frame of a scene and score the final state against its ground truth. `evidence`: which of
-    the scene's depth images and landmarks (where it has them) give the detections' surface depths."""
+    the scene's depth images and landmarks (where it has them) give the detections' surface depths; `trace`:
+    also say per ground-truth object why it is or is not published (`trace_objects`, in `res.trace`)."""
     assoc = Associator(cfg)
     gt_rows: list[int] = []
     vis_rows: list[float] = []
@@ -114,10 +119,11 @@ def run_scene(scene: SynthScene, cfg: AssociationConfig, filt: FilterConfig,
         labels = np.array([d.label for d in dets], dtype=np.int64)
         boxes = np.array([d.bbox for d in dets], dtype=np.float64).reshape(-1, 4)
         surface = None
-        if (frame.depth is not None and 'depth' in evidence) or (scene.landmarks is not None and 'landmarks' in evidence):
+        landmarks = frame.landmarks if frame.landmarks is not None else scene.landmarks
+        if (frame.depth is not None and 'depth' in evidence) or (landmarks is not None and 'landmarks' in evidence):
             surface = surface_depths(frame.instances, labels, frame.K, invert_transform(frame.T_world_camera_observed),
                                      depth_image_to_metres(frame.depth) if 'depth' in evidence and frame.depth
-                                     is not None else None, scene.landmarks if 'landmarks' in evidence else None)
+                                     is not None else None, landmarks if 'landmarks' in evidence else None)
         t0 = time.perf_counter()
         assoc.add_frame(frame.stamp, frame.K, frame.T_world_camera_observed, frame.size, labels, boxes, surface)
         t1 = time.perf_counter()
@@ -162,11 +168,62 @@ def run_scene(scene: SynthScene, cfg: AssociationConfig, filt: FilterConfig,
         res.yaw_err.append(float(np.degrees(abs(d))))
     res.boxes = [(t.coco_id, t.box.center, t.box.size, t.box.yaw, match.get(k, -1)) for k, t in enumerate(tracks)
                  if t.box is not None]
+    if trace:
+        res.trace = trace_objects(assoc, scene, gt, tracks, match)
     sel = ids >= 0
     res.kept = int(np.count_nonzero(kept & sel))
     res.kept_vis = vis[kept & sel].tolist()
     res.pruned_vis = vis[~kept & sel].tolist()
     return res
+
+
+def trace_objects(assoc: Associator, scene: SynthScene, gt: np.ndarray, tracks: list, match: dict[int, int],
+                  far: float = 0.5) -> list[str]:
+    """One line per ground-truth object: its detections (reliable / truncated / other), the clusters holding
+    them, and its fate: published (box centre error; 'placement' when farther than `far` m), or why not: never
+    detected, never clustered, taken by another object's track, or the first publishing condition its main
+    cluster fails (`Associator.publish_blocker`). gt: (rows,) object index of every detection row (-1: none);
+    tracks / match: the published tracks and {track index: object index} of `run_scene`."""
+    from frodo_common.categories import category_by_id
+
+    lines = []
+    by_object = {o: k for k, o in match.items()}
+    owner = {t.object_id: match.get(k, -1) for k, t in enumerate(tracks)}
+    for obj_index, obj in enumerate(scene.objects):
+        rows = np.nonzero(gt == obj_index)[0]
+        name = category_by_id(obj.coco_id).name
+        rel, trunc = assoc.rows.reliable[rows], assoc.rows.truncated[rows]
+        clusters = np.unique(assoc.rows.assign[rows], return_counts=True)
+        held = ', '.join(f'{"none" if c < 0 else c}: {n}' for c, n in zip(*clusters))
+        head = (f'object {obj_index} ({name}, {np.linalg.norm(obj.size[:2]):.2f} m across): {len(rows)} detections '
+                f'in {len(np.unique(assoc.rows.frame[rows]))} frames, {int(rel.sum())} reliable, '
+                f'{int(trunc.sum())} truncated, {int((~rel & ~trunc).sum())} other; clusters {{{held or "-"}}}: ')
+        if obj_index in by_object:
+            t = tracks[by_object[obj_index]]
+            err = np.linalg.norm(t.box.center - obj.center) if t.box is not None else float('nan')
+            fate = f'published as {t.object_id}, box centre {err:.2f} m off' + (' (placement)' if err > far else '')
+        elif len(rows) == 0:
+            fate = 'never detected (or no detection matched it)'
+        else:
+            assigned = clusters[0] >= 0
+            if not assigned.any():
+                fate = 'never clustered (its detections opened no cluster and joined none)'
+            else:
+                main = int(clusters[0][assigned][np.argmax(clusters[1][assigned])])
+                t = assoc.tracks[main]
+                if t.confirmed:
+                    fate = f'its main cluster {main} is published for object {owner.get(main, -1)}'
+                else:
+                    fate = f'main cluster {main} not published: {assoc.publish_blocker(main)}'
+        lines.append(head + fate)
+    for k, t in enumerate(tracks):
+        if k not in match:
+            member_gt = gt[assoc.members(t.object_id)]
+            of = np.bincount(member_gt[member_gt >= 0]).argmax() if (member_gt >= 0).any() else -1
+            lines.append(f'false track {t.object_id} ({category_by_id(t.coco_id).name}) at '
+                         f'{np.round(t.center, 2).tolist()}: {len(member_gt)} detections'
+                         + (f', duplicate of object {of}' if of >= 0 else ''))
+    return lines
 
 
 def summarise(results: list[SceneResult]) -> dict:
@@ -203,7 +260,8 @@ def scene_from_bag(path: str, min_iou: float = 0.3) -> tuple[SynthScene, list[st
     Ground-truth objects: upright boxes around the ground-truth meshes (class from the marker ns). Each
     instance is labelled with the ground-truth object of its class whose projected mesh (bounding box of
     the projected vertices, clipped to the image) has the highest IoU with the instance box, at least
-    `min_iou` (an approximation for occluded instances). Returns (scene, notes).
+    `min_iou` (an approximation for occluded instances). Each frame carries the latest /slam/points map
+    stamped no later than it (as the association node sees it). Returns (scene, notes).
     """
     from frodo_common import conversions as conv
     from frodo_common import topics
@@ -213,8 +271,9 @@ def scene_from_bag(path: str, min_iou: float = 0.3) -> tuple[SynthScene, list[st
 
     reader = BagReader(path)
     notes = list(reader.problems)
-    info, poses, instances, objects, vertices = None, {}, {}, [], []
-    for m in reader.messages([topics.CAMERA_INFO, topics.POSE, topics.INSTANCES, topics.GROUND_TRUTH]):
+    info, poses, instances, objects, vertices, maps = None, {}, {}, [], [], {}
+    for m in reader.messages([topics.CAMERA_INFO, topics.POSE, topics.INSTANCES, topics.GROUND_TRUTH,
+                              topics.SLAM_POINTS]):
         msg = m.decode()
         if m.topic == topics.CAMERA_INFO and info is None:
             info = (conv.camera_info_to_K(msg), (int(msg.width), int(msg.height)))
@@ -222,6 +281,9 @@ def scene_from_bag(path: str, min_iou: float = 0.3) -> tuple[SynthScene, list[st
             poses[conv.stamp_to_ns(msg.header.stamp)] = conv.pose_to_matrix(msg.pose)
         elif m.topic == topics.INSTANCES:
             instances[conv.stamp_to_ns(msg.header.stamp)] = conv.image_to_numpy(msg)
+        elif m.topic == topics.SLAM_POINTS:
+            points = conv.cloud_to_xyz(msg)
+            maps[conv.stamp_to_ns(msg.header.stamp)] = points[np.isfinite(points).all(1)]
         elif m.topic == topics.GROUND_TRUTH and not objects:
             for marker in msg.markers:
                 if marker.ns not in BY_NAME:
@@ -237,6 +299,7 @@ def scene_from_bag(path: str, min_iou: float = 0.3) -> tuple[SynthScene, list[st
     points = np.concatenate(vertices)
     classes = np.array([o.coco_id for o in objects])
     frames = []
+    map_stamps = np.array(sorted(maps), dtype=np.int64)
     for stamp in sorted(set(poses) & set(instances)):
         uv, depth = project_points(K, invert_transform(poses[stamp]), points)
         front = depth > 0.05
@@ -253,8 +316,11 @@ def scene_from_bag(path: str, min_iou: float = 0.3) -> tuple[SynthScene, list[st
         iou[:, ~seen] = 0.0
         iou[(labels[:, None] >> 8) != classes[None, :]] = 0.0
         gt = {int(lab): int(row.argmax()) for lab, row in zip(labels, iou) if row.size and row.max() >= min_iou}
-        frames.append(SynthFrame(stamp, K, poses[stamp], poses[stamp], size, instances[stamp], gt, {}))
-    notes.append(f'{len(frames)} frames with pose and instances, {len(objects)} ground-truth objects')
+        latest = np.searchsorted(map_stamps, stamp, side='right') - 1
+        frames.append(SynthFrame(stamp, K, poses[stamp], poses[stamp], size, instances[stamp], gt, {},
+                                 landmarks=maps[int(map_stamps[latest])] if latest >= 0 else None))
+    notes.append(f'{len(frames)} frames with pose and instances, {len(objects)} ground-truth objects'
+                 + (f', {len(maps)} SLAM maps' if maps else ''))
     return SynthScene(objects, frames), notes
 
 
@@ -355,11 +421,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--variants', default='base', help='handheld: comma-separated subset of: ' + ', '.join(HANDHELD_VARIANTS))
     ap.add_argument('--evidence', default='depth,landmarks',
                     help="handheld: surface depth from 'depth', 'landmarks', both (depth first) or 'none'")
+    ap.add_argument('--keyframes', action='store_true', help='with --bags: config.KEYFRAME_SETTINGS (the '
+                    "'keyframes' parameter preset)")
+    ap.add_argument('--set', default='', metavar='NAME=VALUE,...', help='override AssociationConfig fields')
+    ap.add_argument('--trace', action='store_true', help='with --bags: per ground-truth object, why it is or is '
+                    'not published (`trace_objects`)')
     ap.add_argument('--before', action='store_true', help='handheld: the association settings before the keyframe '
                     'front end (BEFORE_KEYFRAMES), no evidence')
     args = ap.parse_args(argv)
     filt = FilterConfig()
     base = AssociationConfig()
+    overrides = dict(KEYFRAME_SETTINGS) if args.keyframes else {}
+    for item in filter(None, args.set.split(',')):
+        key, _, value = item.partition('=')
+        kind = type(getattr(base, key.strip()))
+        overrides[key.strip()] = value.strip().lower() in ('1', 'true') if kind is bool else kind(value)
+    base = replace(base, **overrides)
     out = {'machine': f'{platform.node()} ({platform.processor() or platform.machine()})', 'results': {}}
     if args.layout == 'handheld':
         evidence = () if args.before or args.evidence == 'none' else tuple(args.evidence.split(','))
@@ -398,7 +475,12 @@ def main(argv: list[str] | None = None) -> int:
     print('|' + '---|' * (HEADER.count('|') - 1))
     for name, scenes in groups.items():
         for prune in (True,) if args.no_ablation else (True, False):
-            m = summarise([run_scene(scene, replace(base, prune=prune), filt) for scene in scenes])
+            evidence = () if args.evidence == 'none' else tuple(args.evidence.split(','))
+            res = [run_scene(scene, replace(base, prune=prune), filt, evidence, args.trace and prune)
+                   for scene in scenes]
+            for scene_no, r in enumerate(res if args.trace and prune else ()):
+                print(f'# trace: {name}, scene {scene_no}\n' + '\n'.join(f'#   {line}' for line in r.trace))
+            m = summarise(res)
             out['results'][f'{name} / prune={prune}'] = m
             print(table_row(name, prune, m), flush=True)
     out['config'] = asdict(base)

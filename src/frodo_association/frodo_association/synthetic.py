@@ -41,7 +41,8 @@ class BoxObject:
 class SynthFrame:
     """One camera frame: true and observed (noisy) pose, intrinsics, instance image and its ground truth.
 
-    gt: instance label -> object index; visibility: label -> visible pixels / projected box area.
+    gt: instance label -> object index; visibility: label -> visible pixels / projected box area;
+    landmarks: the SLAM map (P, 3) (world) as it stood at this frame (a bag's latest /slam/points), if any.
     """
 
     stamp: int
@@ -53,6 +54,7 @@ class SynthFrame:
     gt: dict[int, int] = field(default_factory=dict)
     visibility: dict[int, float] = field(default_factory=dict)
     depth: np.ndarray | None = None
+    landmarks: np.ndarray | None = None
 
 
 @dataclass

@@ -661,6 +661,31 @@ class Associator:
                 kept.append(e)
         return len(kept)
 
+    def publish_blocker(self, object_id: int, evidence: int | None = None) -> str | None:
+        """Why an unpublished cluster is not published (the first publishing condition it fails, in words), or
+        None when it meets the rule (`_update_confirmation` publishes it then). evidence: its detections that
+        count towards publishing (reliable ones; with truncated ones while `from_truncated`), counted if None."""
+        cfg = self.cfg
+        t = self.tracks[object_id]
+        if evidence is None:
+            rows = self.members(object_id)
+            evidence = int(np.count_nonzero(self.rows.reliable[rows] | (t.from_truncated & self.rows.truncated[rows])))
+        if evidence < cfg.min_track_views:
+            return f'{evidence} reliable detections < min_track_views {cfg.min_track_views}'
+        ratio, n_view, in_view = self._view_stats(object_id)
+        if ratio < cfg.min_hit_ratio:
+            return f'hit ratio {ratio:.2f} < min_hit_ratio {cfg.min_hit_ratio} ({n_view} frames in view)'
+        if n_view >= cfg.confirm_window:
+            return None
+        if cfg.confirm_views <= 0:
+            return f'{n_view} frames in view < confirm_window {cfg.confirm_window} (keyframe rule off)'
+        if in_view:
+            return f'{n_view} frames in view < confirm_window {cfg.confirm_window}, still in view'
+        views = self.distinct_views(object_id, not t.from_truncated)
+        if views < cfg.confirm_views:
+            return f'{views} viewpoints < confirm_views {cfg.confirm_views}'
+        return None
+
     def _update_confirmation(self, recheck: bool) -> tuple[set[int], dict[int, int]]:
         """Confirm clusters with at least min_track_views reliable detections (not truncated, not too small:
         those that may open clusters; for clusters opened by the deferred truncated rule, truncated ones count), in
@@ -681,14 +706,11 @@ class Associator:
             if t.from_truncated and counts[t.object_id] >= cfg.min_track_views:
                 t.from_truncated = False          # now seen whole often enough: an ordinary cluster
             n = all_counts[t.object_id] if t.from_truncated else counts[t.object_id]
-            if not t.confirmed and n >= cfg.min_track_views:
-                ratio, n_view, in_view = self._view_stats(t.object_id)
-                if ratio >= cfg.min_hit_ratio and (n_view >= cfg.confirm_window or (
-                        cfg.confirm_views > 0 and not in_view
-                        and self.distinct_views(t.object_id, not t.from_truncated) >= cfg.confirm_views)):
+            if not t.confirmed:
+                if self.publish_blocker(t.object_id, int(n)) is None:
                     t.confirmed = True
                     changed.append(t.object_id)
-            elif t.confirmed and recheck:
+            elif recheck:
                 ratio, n_view = self.hit_ratio(t.object_id)
                 if ratio < cfg.drop_hit_ratio and n_view >= 2 * cfg.min_track_views:
                     t.confirmed = False

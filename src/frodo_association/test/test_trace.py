@@ -1,0 +1,49 @@
+"""Tracing why objects are (not) published (`evaluate.trace_objects`, `Associator.publish_blocker`) and the SLAM
+maps a bag's frames carry (`evaluate.scene_from_bag`)."""
+from dataclasses import replace
+
+import numpy as np
+
+from frodo_association.config import AssociationConfig
+from frodo_association.evaluate import run_scene, scene_from_bag
+from frodo_association.synthetic import make_scene
+from frodo_common import conversions as conv
+from frodo_common import topics
+from frodo_common.bag import BagWriter
+from frodo_detection.core import FilterConfig
+from visualization_msgs.msg import MarkerArray
+
+BOX_FACES = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                      [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+
+
+def test_trace_names_published_objects_and_the_failed_publishing_condition():
+    scene = make_scene(3, seed=7, n_frames=40)
+    res = run_scene(scene, AssociationConfig(), FilterConfig(), trace=True)
+    assert len(res.trace) == 3 and all('published as' in line for line in res.trace)
+    strict = run_scene(scene, replace(AssociationConfig(), min_track_views=1000), FilterConfig(), trace=True)
+    assert len(strict.trace) == 3
+    assert all('not published' in line and '< min_track_views 1000' in line for line in strict.trace)
+    windowed = run_scene(scene, replace(AssociationConfig(), confirm_window=1000), FilterConfig(), trace=True)
+    assert all('< confirm_window 1000 (keyframe rule off)' in line for line in windowed.trace)
+
+
+def test_bag_frames_carry_the_latest_slam_map_stamped_no_later(tmp_path):
+    scene = make_scene(2, seed=3, n_frames=6)
+    path = tmp_path / 'walk.mcap'
+    names = {62: 'chair', 67: 'dining table'}
+    maps = {scene.frames[1].stamp: np.zeros((4, 3)), scene.frames[4].stamp: np.ones((7, 3))}
+    with BagWriter(path) as bag:
+        f0 = scene.frames[0]
+        bag.write(topics.GROUND_TRUTH, MarkerArray(markers=[
+            conv.mesh_to_marker(o.corners(), BOX_FACES, names[o.coco_id], k, f0.stamp, 'world')
+            for k, o in enumerate(scene.objects)]), f0.stamp)
+        for f in scene.frames:
+            bag.write(topics.CAMERA_INFO, conv.make_camera_info(f.K, *f.size, f.stamp, 'cam'), f.stamp)
+            bag.write(topics.POSE, conv.make_pose_stamped(f.T_world_camera, f.stamp, 'world'), f.stamp)
+            bag.write(topics.INSTANCES, conv.numpy_to_image(f.instances, '16UC1', f.stamp, 'cam'), f.stamp)
+            if f.stamp in maps:
+                bag.write(topics.SLAM_POINTS, conv.xyz_to_cloud(maps[f.stamp], f.stamp, 'world'), f.stamp)
+    read, notes = scene_from_bag(str(path))
+    assert [None if f.landmarks is None else len(f.landmarks) for f in read.frames] == [None, 4, 4, 4, 7, 7]
+    assert '2 SLAM maps' in notes[-1]
