@@ -13,13 +13,11 @@ import pytest
 
 from frodo_bringup.graph import NODES
 from frodo_bringup.launcher import Launcher
+from frodo_bringup.long_bag import repeat_bag
 from frodo_bringup.player import Player
 from frodo_bringup.readiness import GraphMonitor
 from frodo_bringup.session import RosSession
 from frodo_bringup.testing import wait_until
-from frodo_common import conversions as conv
-from frodo_common import topics
-from frodo_common.bag import BagReader, BagWriter
 
 BAG = Path(__file__).resolve().parents[1] / 'bags' / 'demo_walk.mcap'
 BY_NAME = {n.name: n for n in NODES}
@@ -73,20 +71,6 @@ def graph():
         g.close()
 
 
-def _long_bag(path: Path, copies: int, gap_ns: int = 5_000_000_000) -> Path:
-    """The demo bag `copies` times in a row, each copy's stamps `gap_ns` later (a loop would repeat stamps,
-    which the nodes drop as duplicates)."""
-    messages = [m for m in BagReader(BAG).messages() if m.topic != topics.GROUND_TRUTH]
-    with BagWriter(path) as bag:
-        for k in range(copies):
-            for m in messages:
-                msg = m.decode()
-                stamp = conv.stamp_to_ns(msg.header.stamp) + k * gap_ns
-                msg.header.stamp = conv.ns_to_stamp(stamp)
-                bag.write(m.topic, msg, stamp)
-    return path
-
-
 def _play(graph: _Graph, stop: threading.Event, bag: Path = BAG) -> threading.Thread:
     player = Player(graph.session.node, bag, rate=1.0, progress=False)
     thread = threading.Thread(target=player.play, args=(stop,), daemon=True)
@@ -117,7 +101,7 @@ def test_sigkill_of_a_node_while_a_bag_plays_restarts_it_and_the_others_keep_the
     launcher = g.launch(['detection_node', 'association_node'], params, on_failure='restart', restart_delay=0.5)
     assert g.monitor.wait_ready(60), g.lines
     stop = threading.Event()
-    player = _play(g, stop, _long_bag(tmp_path / 'long.mcap', copies=8))  # 40 s
+    player = _play(g, stop, repeat_bag(BAG, tmp_path / 'long.mcap', copies=8))  # 40 s
     try:
         for victim, survivor in (('association_node', 'detection_node'), ('detection_node', 'association_node')):
             assert wait_until(lambda: int(g.status(victim).get('frames_received', '0')) >= 5, 30), g.status(victim)

@@ -12,6 +12,9 @@ Sections (each a function returning plain data; a section that cannot run says w
 - `end_to_end`: `frodo run` of the demo bag: wall time, per-stage figures from the nodes' diagnostics
   and objects.json, and the intervals between each node's `/diagnostics` reports (contract: at least
   1 Hz), from their publish stamps and, separately, their arrival at a probe.
+- `soak` (not in the default set: minutes to an hour): `soak_frames` frames of the demo bag repeated with shifted
+  stamps at `soak_rate` x real time through the whole graph; peak and growing memory per node, backlog, latency
+  per frame, /diagnostics intervals (frodo_bringup.soak; OUT/soak/soak.json + soak.png).
 """
 from __future__ import annotations
 
@@ -301,7 +304,8 @@ def write_plots(doc: dict[str, Any], out: Path) -> list[str]:
     return written
 
 
-def run_all(out: Path, quick: bool, device: str, sections: list[str], log: Callable[[str], None]) -> dict[str, Any]:
+def run_all(out: Path, quick: bool, device: str, sections: list[str], log: Callable[[str], None],
+            soak_frames: int = 10_000, soak_rate: float = 2.0) -> dict[str, Any]:
     """Every requested section, each timed and isolated (an exception is recorded, the others still run)."""
     out.mkdir(parents=True, exist_ok=True)
     views = [5, 35] if quick else [5, 10, 20, 35, 60]
@@ -313,6 +317,7 @@ def run_all(out: Path, quick: bool, device: str, sections: list[str], log: Calla
                                          1, device),
         'association': lambda: association_latency([2, 10] if quick else [1, 2, 5, 10, 20], 40 if quick else 200),
         'end_to_end': lambda: end_to_end(DEMO_BAG, out / 'demo_run', rate=1.0),
+        'soak': lambda: _soak(out / 'soak', soak_frames, soak_rate, doc['machine'], log),
     }
     doc: dict[str, Any] = {'machine': machine_info(device), 'quick': quick, 'paper': PAPER}
     for name in sections:
@@ -327,11 +332,18 @@ def run_all(out: Path, quick: bool, device: str, sections: list[str], log: Calla
                                                               else f' ({doc[name]["skipped"]})'
                                                               if 'skipped' in doc[name] else ''))
     doc['machine']['load_average_1min_end'] = round(os.getloadavg()[0], 2)
-    doc['plots'] = write_plots(doc, out)
+    doc['plots'] = write_plots(doc, out) + (['soak/soak.png'] if 'plot' in doc.get('soak', {}) else [])
     return doc
 
 
-SECTIONS = ('decoder', 'bag_read', 'sparse', 'dense', 'association', 'end_to_end')
+def _soak(out: Path, frames: int, rate: float, machine: dict[str, Any], log: Callable[[str], None]) -> dict[str, Any]:
+    from frodo_bringup.soak import soak
+    subtitle = f"{machine['cpu']} ({machine['logical_cpus']} CPUs, load {machine['load_average_1min']})"
+    return soak(out, frames=frames, rate=rate, subtitle=subtitle, log=log)
+
+
+SECTIONS = ('decoder', 'bag_read', 'sparse', 'dense', 'association', 'end_to_end')   # the default set
+ALL_SECTIONS = SECTIONS + ('soak',)
 
 
 def summary(doc: dict[str, Any]) -> str:
@@ -369,4 +381,13 @@ def summary(doc: dict[str, Any]) -> str:
                 lines.append(f"  /diagnostics {name}: {v['reports']} reports, every {v['mean_s']} s on average, "
                              f"p95 {v['p95_s']} s, max {v['max_s']} s, {v['over_1_5_s']} gaps > 1.5 s "
                              f"(at the probe: max {v['arrival'].get('max_s')} s)")
+    s = doc.get('soak', {})
+    if 'memory' in s:
+        lines.append(f"soak: {s['frames_played']} frames at {s['rate']}x, exit {s['exit_code']}, {s['objects']} objects, "
+                     f"{s['wall_s']} s wall; per-frame latency median {s['latency'].get('median_ms')} ms, p95 "
+                     f"{s['latency'].get('p95_ms')} ms (last/first tenth {s['latency'].get('last_to_first_tenth_median')})")
+        for name, m in s['memory'].items():
+            lines.append(f"  {name}: RSS peak {m['peak_mb']} MB, end {m['end_mb']} MB, growth over the second half "
+                         f"{m['growth_mb_per_1000_frames']} MB per 1000 frames; backlog max "
+                         f"{s['backlog_frames'].get(name, {}).get('max')} frames")
     return '\n'.join(lines)

@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from frodo_bringup.bench import SECTIONS, run_all, summary
+from frodo_bringup.bench import ALL_SECTIONS, SECTIONS, run_all, summary
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -17,8 +17,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              '(default: %(default)s)')
     parser.add_argument('--quick', action='store_true',
                         help='fewer views, objects, frames and repeats (a few minutes on 2 CPUs)')
-    parser.add_argument('--only', nargs='+', choices=SECTIONS, metavar='SECTION',
-                        help=f'run only these sections ({", ".join(SECTIONS)}); default: all')
+    parser.add_argument('--only', nargs='+', choices=ALL_SECTIONS, metavar='SECTION',
+                        help=f'run only these sections ({", ".join(ALL_SECTIONS)}); default: all but soak')
+    parser.add_argument('--soak-frames', type=int, default=10_000, metavar='N',
+                        help='frames of the soak run (demo bag repeated; default: %(default)s)')
+    parser.add_argument('--soak-rate', type=float, default=2.0, metavar='X',
+                        help='playback rate of the soak run, times real time (default: %(default)s)')
     parser.add_argument('--device', default='auto', help="torch device: 'auto' (cuda if available), 'cpu', 'cuda'")
     parser.add_argument('--threads', type=int, default=0, metavar='N',
                         help='torch CPU threads (default: torch\'s own choice)')
@@ -36,8 +40,12 @@ def run(args: argparse.Namespace) -> int:
     if args.threads > 0:
         torch.set_num_threads(args.threads)
     out = Path(args.out)
+    if args.soak_frames < 1 or args.soak_rate <= 0:
+        print('frodo bench: error: --soak-frames must be >= 1 and --soak-rate > 0', file=sys.stderr)
+        return 2
     doc = run_all(out, args.quick, device, list(args.only or SECTIONS),
-                  log=lambda text: print(f'frodo bench: {text}', file=sys.stderr, flush=True))
+                  log=lambda text: print(f'frodo bench: {text}', file=sys.stderr, flush=True),
+                  soak_frames=args.soak_frames, soak_rate=args.soak_rate)
     (out / 'bench.json').write_text(json.dumps(doc, indent=2) + '\n')
     print(summary(doc))
     print(f'written: {out / "bench.json"}' + ''.join(f', {out / p}' for p in doc['plots']))

@@ -15,7 +15,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence, TextIO
+from typing import Any, Callable, Sequence, TextIO
 
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
@@ -147,8 +147,10 @@ def run_bag(bag: str | os.PathLike, out_dir: str | os.PathLike, params_files: Se
             timeout: float = 300.0, rate: float = 1.0, viewer: str = 'none',
             nodes: Sequence[GraphNode] = NODES, startup_timeout: float = 60.0,
             stop: threading.Event | None = None, output: TextIO | None = None, progress: bool = True,
-            env: dict[str, str] | None = None) -> RunResult:
+            env: dict[str, str] | None = None, player_factory: Callable[..., Player] = Player) -> RunResult:
     """Reconstruct one bag end to end; `timeout` bounds the wait for the graph after the bag has played.
+    `player_factory(node, bag, rate=, progress=, ground_truth=)` makes the player (e.g. a
+    `long_bag.RepeatingPlayer` for soak runs).
 
     Raises PlayerError (missing or unreadable bag, not an MCAP, required input topics absent) before any
     node is started.
@@ -166,7 +168,7 @@ def run_bag(bag: str | os.PathLike, out_dir: str | os.PathLike, params_files: Se
     session = RosSession('frodo_run')
     result = RunResult(EXIT_OK)
     try:
-        player = Player(session.node, bag, rate=rate, progress=progress, ground_truth=viewer == 'rrd')
+        player = player_factory(session.node, bag, rate=rate, progress=progress, ground_truth=viewer == 'rrd')
         missing = player.missing_required()
         if missing:
             raise PlayerError(f'{player.reader.path} has no message on the required input(s) {", ".join(missing)} '
