@@ -223,10 +223,9 @@ def load_maps(root: str | os.PathLike, owns: Callable[[int], bool] = lambda oid:
               ) -> tuple[dict[int, MapObject], list[str]]:
     """({id: object} of every map under `root` whose id `owns` accepts, problems). A map that cannot be read
     is a problem, not an exception (the others still load); no map at all is one too. An id saved twice
-    (maps of different worker counts) keeps the later stage, then the record with more views."""
+    (maps of different worker counts) keeps the later stage, then the record with more views. No map under
+    `root` at all gives nothing and no problem (a first start with `--resume` of the folder it saves to)."""
     dirs = map_dirs(root)
-    if not dirs:
-        return {}, [f'{root}: no object map (objects.json) there or in worker_*/; starting empty']
     found: dict[int, MapObject] = {}
     problems: list[str] = []
     for directory in dirs:

@@ -12,6 +12,13 @@ In:  /frodo/tracks (latched MarkerArray of boxes), /frodo/object_codes (latched 
 Out: /frodo/objects (contract: TRIANGLE_LIST per object, world vertices), /frodo/boxes (contract: CUBE per
      object), /frodo/object_states (latched table for the command line's objects.json), /diagnostics with
      state idle|busy and pending_objects.
+
+Several workers (parameters worker_index k, worker_count N) split the objects by id (id % N == k): each takes
+only its own objects' tracks, codes and views, and publishes only its share of the object map; every
+message says what the worker has (ADDs) and every id it has retracted (DELETEs, repeated), never DELETEALL,
+so listeners that apply the messages of all workers by object id hold the whole map. With map_dir the
+worker saves its objects after each published stage (frodo_optim.object_map; also on the ~/save_map
+service); with resume it starts from a saved map and republishes it at once.
 """
 from __future__ import annotations
 
@@ -22,6 +29,7 @@ from collections import OrderedDict
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
 from frodo_common import conversions as conv
@@ -32,6 +40,7 @@ from frodo_common.frame_cache import FrameCache
 from frodo_common.params import ParamSpec
 from frodo_optim.core import ObjectEstimate, fused_estimate, world_box
 from frodo_optim.dense import DenseConfig, refine_dense
+from frodo_optim.object_map import MapObject, MapWriter, load_maps, map_dirs, worker_map_dir
 from frodo_optim.photometric import ViewBatch, dense_view_from_frame
 from frodo_optim.sparse import SparseConfig, ViewStore, refine, select_views, view_from_mask
 from frodo_optim.states import OBJECT_STATES, STAGE_REASONS, STAGES, STATES_DTYPE
@@ -86,6 +95,12 @@ PARAMS = (
     ParamSpec('camera_info_topic', topics.CAMERA_INFO, 'Camera intrinsics topic.'),
     ParamSpec('pose_topic', topics.POSE, 'Camera pose topic (T_world_camera, optical frame).'),
     ParamSpec('slam_points_topic', topics.SLAM_POINTS, 'SLAM landmarks topic (whole map per message).'),
+    ParamSpec('worker_index', 0, 'This worker takes the objects with id % worker_count == worker_index.'),
+    ParamSpec('worker_count', 1, 'Optimiser workers sharing the objects (frodo launch --optim-workers N).'),
+    ParamSpec('map_dir', '', "Save the object map here after each published stage (DIR/worker_<k> with several "
+              "workers; also on the ~/save_map service); '' disables."),
+    ParamSpec('resume', '', "Start from the object map saved in this folder (and its worker_* folders), "
+              "republished at once; '' starts empty."),
 )
 
 CLASS_COLOURS = {'chair': (0.95, 0.55, 0.15, 1.0), 'dining table': (0.2, 0.6, 0.95, 1.0)}
@@ -96,12 +111,18 @@ class OptimNode(FrodoNode):
 
     def __init__(self, **kwargs):
         super().__init__('optim_node', PARAMS, **kwargs)
+        self.worker_index, self.worker_count = int(self.params['worker_index']), int(self.params['worker_count'])
+        if not 0 <= self.worker_index < self.worker_count:
+            raise ValueError(f'worker_index {self.worker_index} must be in 0..worker_count-1 '
+                             f'(worker_count {self.worker_count})')
         self.prior = ShapePrior.load(self.params['prior'], device=self.params['device'])
         self.tracks: dict[int, tuple[str, tuple]] = {}             # id -> (class, (centre, size, yaw))
         self.codes: dict[int, tuple[int, int, np.ndarray]] = {}     # id -> (category, views, code)
         self.estimates: dict[int, ObjectEstimate] = {}
         self.mesh_cache: dict[int, tuple[np.ndarray, object]] = {}  # id -> (code, normalised mesh)
         self.published_ids: set[tuple[str, int]] = set()
+        self.retracted: set[tuple[str, int]] = set()                # published once, now gone: DELETE every time
+        self.resumed: dict[int, int] = {}                           # id -> views of its saved estimate (not re-run yet)
         self.pending: set[int] = set()
         self.busy: int | None = None                                # id of the object being reconstructed
         self.cond = threading.Condition()
@@ -122,6 +143,12 @@ class OptimNode(FrodoNode):
         self.objects_pub = self.create_publisher(MarkerArray, topics.OBJECTS, topics.LATCHED_QOS)
         self.boxes_pub = self.create_publisher(MarkerArray, topics.BOXES, topics.LATCHED_QOS)
         self.states_pub = self.create_publisher(PointCloud2, OBJECT_STATES, topics.LATCHED_QOS)
+        self.map_lock = threading.Lock()
+        self.map_writer = (MapWriter(worker_map_dir(self.params['map_dir'], self.worker_index, self.worker_count),
+                                     (self.worker_index, self.worker_count)) if self.params['map_dir'] else None)
+        self.create_service(Trigger, '~/save_map', self._on_save_map)
+        if self.params['resume']:
+            self._resume(self.params['resume'])
         self.create_subscription(MarkerArray, topics.TRACKS, self.guarded(self._on_tracks, 'tracks'),
                                  topics.LATCHED_QOS)
         self.create_subscription(PointCloud2, topics.OBJECT_CODES, self.guarded(self._on_codes, 'object_codes'),
@@ -146,11 +173,17 @@ class OptimNode(FrodoNode):
         self.worker = threading.Thread(target=self._work, name='optim_worker', daemon=True)
         self.worker.start()
 
+    def owns(self, object_id: int) -> bool:
+        """True for the objects this worker reconstructs (all of them with one worker)."""
+        return object_id % self.worker_count == self.worker_index
+
     # ------------------------------------------------------------ inputs
     def _on_tracks(self, msg: MarkerArray) -> None:
         self.count('tracks_received')
         with self.cond:
             for m in msg.markers:
+                if m.action != Marker.DELETEALL and not self.owns(m.id):
+                    continue
                 if m.action == Marker.DELETEALL:
                     self.tracks.clear()
                 elif m.action == Marker.DELETE:
@@ -175,6 +208,8 @@ class OptimNode(FrodoNode):
         with self.cond:
             for row in table:
                 oid = int(row['object_id'])
+                if not self.owns(oid):
+                    continue
                 code = np.asarray(row['code'], dtype=np.float32)
                 if not np.all(np.isfinite(code)):
                     self.report_error('object_codes', f'object {oid}: non-finite code ignored')
@@ -260,6 +295,8 @@ class OptimNode(FrodoNode):
                                            f'{width}x{height} colour image; ignored', counter='warnings')
                 depth = None
         for r in rows:   # all rows: ids of past frames are assigned or changed later by re-sends
+            if r['object_id'] >= 0 and not self.owns(int(r['object_id'])):
+                continue     # another worker's object (a later merge into one of ours loses this view)
             mask = labels == r['label']
             view = view_from_mask(K, T, mask, int(self.params['sparse_mask_samples']), detected & ~mask, self.rng)
             if view is None:
@@ -326,8 +363,20 @@ class OptimNode(FrodoNode):
         if track is None or codes is None or codes[1] < int(self.params['min_views']):
             if track is None and oid in self.estimates:
                 del self.estimates[oid]
+                self.resumed.pop(oid, None)
                 self._publish()
             return
+        if oid in self.resumed and self.params['sparse_enabled']:
+            # A restarted worker has none of the views its saved estimate came from: keep that estimate until
+            # as many new ones as a sparse pass uses (or as it had) are in, so a re-run is not worse for want
+            # of views.
+            needed = max(int(self.params['min_views']), min(self.resumed[oid], int(self.params['sparse_views'])))
+            with self.cond:
+                stored = len(self.view_store.views_of(oid))
+            if stored < needed:
+                self.count('resumed_waiting_for_views')
+                return
+        self.resumed.pop(oid, None)
         class_name, box = track
         category, views, code = codes
         start = time.perf_counter()
@@ -449,27 +498,81 @@ class OptimNode(FrodoNode):
         now = self.get_clock().now().nanoseconds
         frame = self.params['world_frame']
         objects, boxes = MarkerArray(), MarkerArray()
-        current = set()
-        states = np.zeros(len(self.estimates), dtype=STATES_DTYPE)
-        for i, est in enumerate(sorted(self.estimates.values(), key=lambda e: e.object_id)):
+        estimates = sorted(self.estimates.values(), key=lambda e: e.object_id)
+        current = {(est.class_name, est.object_id) for est in estimates}
+        # Every object this worker published and has since dropped gets a DELETE in every message, first (a
+        # listener keyed by id then keeps an object whose class changed): listeners that merge several
+        # workers' messages, or missed one, still drop it. Never DELETEALL: that would wipe other workers'.
+        self.retracted = (self.retracted | (self.published_ids - current)) - current
+        for ns, oid in sorted(self.retracted, key=lambda key: (key[1], key[0])):
+            objects.markers.append(conv.delete_marker(ns, oid, now, frame))
+            boxes.markers.append(conv.delete_marker(ns, oid, now, frame))
+        states = np.zeros(len(estimates), dtype=STATES_DTYPE)
+        for i, est in enumerate(estimates):
             rgba = CLASS_COLOURS.get(est.class_name, (0.7, 0.7, 0.7, 1.0))
             objects.markers.append(conv.mesh_to_marker(est.mesh_world.vertices, est.mesh_world.faces,
                                                        est.class_name, est.object_id, now, frame, rgba))
             center, size, yaw = est.box
             boxes.markers.append(conv.box_to_marker(center, size, yaw, est.class_name, est.object_id, now, frame,
                                                     rgba[:3] + (0.35,)))
-            current.add((est.class_name, est.object_id))
             states[i] = (est.object_id, est.category, STAGES.index(est.stage), est.num_views, est.scale,
                          est.T_world_object.ravel(), np.r_[center, size, yaw], est.code,
                          sum(est.timings.values()), est.stage_reason)
-        for ns, oid in self.published_ids - current:
-            objects.markers.append(conv.delete_marker(ns, oid, now, frame))
-            boxes.markers.append(conv.delete_marker(ns, oid, now, frame))
         self.published_ids = current
         self.objects_pub.publish(objects)
         self.boxes_pub.publish(boxes)
         self.states_pub.publish(conv.table_to_cloud(states, now, frame))
         self.count('maps_published')
+        if self.map_writer is not None:
+            try:
+                self.save_map()
+            except OSError as err:   # a full disk must not stop the optimiser
+                self.report_error('map_dir', err)
+
+    # ------------------------------------------------------------ object map on disk
+    def save_map(self) -> str:
+        """Write this worker's objects (and the fused code and track each has now) to map_dir; returns the
+        objects.json path. Raises ValueError without map_dir, OSError when the files cannot be written."""
+        if self.map_writer is None:
+            raise ValueError('map_dir is not set')
+        estimates = dict(self.estimates)      # one atomic copy: the worker thread replaces entries meanwhile
+        with self.cond:
+            inputs = {oid: (self.codes.get(oid), self.tracks.get(oid)) for oid in estimates}
+        objects = [MapObject(est, codes[2] if codes else None, codes[1] if codes else 0, track)
+                   for oid, est in estimates.items() for codes, track in [inputs[oid]]]
+        with self.map_lock:
+            path = self.map_writer.save(objects, self.params['world_frame'])
+        self.count('maps_saved')
+        return str(path)
+
+    def _on_save_map(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """~/save_map (std_srvs/Trigger): save now; the response says where, or why not."""
+        try:
+            path = self.save_map()
+            response.success, response.message = True, f'{len(self.estimates)} object(s) saved to {path}'
+        except ValueError as err:
+            response.success, response.message = False, str(err)
+        except OSError as err:
+            self.report_error('save_map', err)
+            response.success, response.message = False, f'saving failed: {err}'
+        return response
+
+    def _resume(self, root: str) -> None:
+        """Take this worker's objects of the map saved under `root` and publish them at once; a map that cannot
+        be read is reported and the worker starts without it."""
+        if not map_dirs(root):
+            self.get_logger().info(f'resume: no saved object map in {root} yet; starting empty')
+            return
+        objects, problems = load_maps(root, self.owns)
+        for problem in problems:
+            self.report_error('resume', problem, counter='warnings')
+        for oid, obj in objects.items():
+            self.estimates[oid] = obj.estimate
+            self.resumed[oid] = obj.estimate.num_views
+        self.count('objects_resumed', len(objects))
+        self.get_logger().info(f'resume: {len(objects)} object(s) from {root}')
+        if objects:
+            self._publish()
 
     # ------------------------------------------------------------ diagnostics and shutdown
     def diagnostic_values(self) -> dict:
@@ -479,6 +582,8 @@ class OptimNode(FrodoNode):
             state = 'busy' if waiting else 'idle'
             values = {'state': state, 'pending_objects': len(waiting),
                       'objects': len(self.estimates), 'tracks': len(self.tracks),
+                      'worker': f'{self.worker_index}/{self.worker_count}',
+                      'resumed_unrefined': len(self.resumed),
                       'sparse_objects': sum(e.stage == 'sparse' for e in self.estimates.values()),
                       'dense_objects': sum(e.stage == 'dense' for e in self.estimates.values()),
                       'views_held': len(self.view_store), 'dense_views_held': len(self.dense_store)}

@@ -1,0 +1,185 @@
+"""optim_node workers and the saved object map in a real rclpy graph (issue 12): two workers split the objects by
+id and their messages merge into one map with every object once (no DELETEALL, deletes only of their own ids);
+a worker saving its map and a new one resuming from it republish the objects at once, and a map that cannot
+be read is reported while the worker starts empty."""
+import json
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import PointCloud2
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import Marker, MarkerArray
+
+from frodo_common import conversions as conv
+from frodo_common import topics
+from frodo_common.testing import latest_status, spin_until
+from frodo_optim.object_map import MAP_FILE
+from frodo_optim.optim_node import OptimNode
+from frodo_optim.states import OBJECT_STATES, STAGES
+from frodo_shape.prior import ShapePrior
+from frodo_shape.shape_node import OBJECT_CODES_DTYPE
+
+CHAIR = 62
+STAMP = 1_000_000_000
+FAST = [Parameter('diagnostics_period', value=0.1), Parameter('mesh_resolution', value=24),
+        Parameter('sparse_enabled', value=False)]
+
+
+def _optimiser(name: str, *params: Parameter) -> OptimNode:
+    return OptimNode(parameter_overrides=FAST + list(params), cli_args=['--ros-args', '-r', f'__node:={name}'])
+
+
+class _Probe:
+    """Publishes tracks and fused codes as the association and shape nodes do; merges /frodo/objects by id."""
+
+    def __init__(self, executor: SingleThreadedExecutor):
+        self.executor = executor
+        self.node = rclpy.create_node('optim_workers_probe')
+        executor.add_node(self.node)
+        self.messages: list[MarkerArray] = []
+        self.merged: dict[int, Marker] = {}
+        self.states: list[PointCloud2] = []
+        self.diags: list[DiagnosticArray] = []
+        self.node.create_subscription(MarkerArray, topics.OBJECTS, self._on_objects, topics.LATCHED_QOS)
+        self.node.create_subscription(PointCloud2, OBJECT_STATES, self.states.append, topics.LATCHED_QOS)
+        self.node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self.diags.append, 50)
+        self.tracks = self.node.create_publisher(MarkerArray, topics.TRACKS, topics.LATCHED_QOS)
+        self.codes = self.node.create_publisher(PointCloud2, topics.OBJECT_CODES, topics.LATCHED_QOS)
+        prior = ShapePrior.load('furniture', device='cpu')
+        chairs = [i for i, c in enumerate(prior.training_classes) if c == 'chair']
+        self.prior_codes = [prior.training_codes[i].numpy() for i in chairs]
+
+    def _on_objects(self, msg: MarkerArray) -> None:
+        self.messages.append(msg)
+        for m in msg.markers:   # what a listener of several workers does: apply every message by object id
+            assert m.action != Marker.DELETEALL
+            if m.action == Marker.DELETE:
+                self.merged.pop(m.id, None)
+            else:
+                self.merged[m.id] = m
+
+    def publish(self, ids, views: int = 3, deleted=()) -> None:
+        table = np.zeros(len(ids), dtype=OBJECT_CODES_DTYPE)
+        markers = MarkerArray(markers=[conv.delete_marker('chair', oid, STAMP, 'world') for oid in deleted])
+        for i, oid in enumerate(ids):
+            table[i] = (oid, CHAIR, views, self.prior_codes[oid % len(self.prior_codes)])
+            markers.markers.append(conv.box_to_marker(np.array([1.5 * oid, 0.0, 0.4]), np.array([0.5, 0.5, 0.8]),
+                                                      0.1 * oid, 'chair', oid, STAMP, 'world'))
+        self.codes.publish(conv.table_to_cloud(table, STAMP, 'world'))
+        self.tracks.publish(markers)
+
+    def status(self, name: str) -> dict[str, str]:
+        return latest_status(self.diags, name)
+
+    def spin(self, condition, timeout: float = 60.0) -> bool:
+        return spin_until(self.executor, condition, timeout)
+
+
+def _idle(probe: _Probe, name: str) -> bool:
+    status = probe.status(name)
+    return status.get('state') == 'idle' and status.get('pending_objects') == '0'
+
+
+def test_two_workers_split_the_objects_and_their_maps_merge_with_every_object_once():
+    rclpy.init()
+    executor = SingleThreadedExecutor()
+    try:
+        workers = [_optimiser(f'optim_node_{k}', Parameter('worker_index', value=k),
+                              Parameter('worker_count', value=2)) for k in range(2)]
+        for w in workers:
+            executor.add_node(w)
+        probe = _Probe(executor)
+        assert probe.spin(lambda: probe.tracks.get_subscription_count() == 2 and probe.codes.get_subscription_count() == 2)
+        probe.publish([1, 2, 3, 4, 5])
+        assert probe.spin(lambda: sorted(probe.merged) == [1, 2, 3, 4, 5] and _idle(probe, 'optim_node_0')
+                          and _idle(probe, 'optim_node_1')), (sorted(probe.merged), probe.status('optim_node_0'))
+        for k, w in enumerate(workers):
+            assert sorted(w.estimates) == [i for i in (1, 2, 3, 4, 5) if i % 2 == k]   # its share, nothing else
+            assert sorted(w.tracks) == sorted(w.estimates) and probe.status(f'optim_node_{k}')['worker'] == f'{k}/2'
+        # every message is one worker's share: no object is published by both
+        shares = [{m.id for m in msg.markers if m.action == Marker.ADD} for msg in probe.messages]
+        assert all(s <= {1, 3, 5} or s <= {2, 4} for s in shares)
+        latest = {}
+        for table in map(conv.cloud_to_table, probe.states):
+            latest[frozenset(int(i) % 2 for i in table['object_id'])] = sorted(table['object_id'].tolist())
+        assert latest == {frozenset({1}): [1, 3, 5], frozenset({0}): [2, 4]}
+        # the association drops object 3: only worker 1 deletes it; the merged map keeps the other four
+        probe.publish([1, 2, 4, 5], deleted=[3])
+        assert probe.spin(lambda: sorted(probe.merged) == [1, 2, 4, 5] and _idle(probe, 'optim_node_1'))
+        last_of_worker_1 = [msg for msg in probe.messages if any(m.id in (1, 5) for m in msg.markers)][-1]
+        assert [(m.id, m.action) for m in last_of_worker_1.markers if m.action == Marker.DELETE] == [(3, Marker.DELETE)]
+        assert all(m.action != Marker.DELETE for msg in probe.messages for m in msg.markers if m.id % 2 == 0)
+    finally:
+        executor.shutdown()
+        rclpy.shutdown()
+
+
+def test_a_saved_map_is_republished_at_once_by_a_resuming_worker_and_refined_on_new_input(tmp_path):
+    rclpy.init()
+    executor = SingleThreadedExecutor()
+    try:
+        first = _optimiser('optim_node', Parameter('map_dir', value=str(tmp_path / 'map')))
+        executor.add_node(first)
+        probe = _Probe(executor)
+        assert probe.spin(lambda: probe.tracks.get_subscription_count() == 1)
+        probe.publish([1, 2])
+        assert probe.spin(lambda: sorted(probe.merged) == [1, 2] and _idle(probe, 'optim_node'))
+        saved = json.loads((tmp_path / 'map' / MAP_FILE).read_text())        # written after each stage
+        assert [r['id'] for r in saved['objects']] == [1, 2] and saved['objects'][0]['fused_views'] == 3
+        client = probe.node.create_client(Trigger, '/optim_node/save_map')
+        assert client.wait_for_service(timeout_sec=10)
+        future = client.call_async(Trigger.Request())
+        assert probe.spin(future.done, 10) and future.result().success, future.result()
+        assert str(tmp_path / 'map' / MAP_FILE) in future.result().message
+        before = {m.id: conv.marker_to_mesh(m)[0] for m in probe.merged.values()}
+        executor.remove_node(first)
+        first.on_shutdown()
+        first.destroy_node()
+
+        # A restarted optimiser (same name, as after a crash) resumes before any input arrives.
+        probe.merged.clear()
+        count = len(probe.states)
+        second = _optimiser('optim_node', Parameter('resume', value=str(tmp_path / 'map')),
+                            Parameter('sparse_enabled', value=True))
+        executor.add_node(second)
+        assert probe.spin(lambda: sorted(probe.merged) == [1, 2] and len(probe.states) > count, 20)
+        assert probe.spin(lambda: probe.status('optim_node').get('objects_resumed') == '2', 10)
+        for oid, vertices in before.items():
+            assert np.allclose(conv.marker_to_mesh(probe.merged[oid])[0], vertices, atol=1e-5)
+        # The latched inputs arrive again, but no views yet: the saved estimates stay (no sparse pass without views)
+        probe.publish([1, 2])
+        assert probe.spin(lambda: int(probe.status('optim_node').get('resumed_waiting_for_views', 0)) >= 2
+                          and _idle(probe, 'optim_node'))
+        assert probe.status('optim_node')['resumed_unrefined'] == '2'
+        executor.remove_node(second)
+        second.on_shutdown()
+        second.destroy_node()
+
+        # Without the sparse stage a resumed object goes on with new input at once: more views, a new fused pass.
+        third = _optimiser('optim_node', Parameter('resume', value=str(tmp_path / 'map')))
+        executor.add_node(third)
+        assert probe.spin(lambda: sorted(third.estimates) == [1, 2])
+        probe.publish([1, 2, 3], views=5)
+        assert probe.spin(lambda: sorted(third.estimates) == [1, 2, 3] and _idle(probe, 'optim_node')
+                          and all(e.num_views == 5 for e in third.estimates.values()))
+        table = conv.cloud_to_table(probe.states[-1])
+        assert sorted(table['object_id'].tolist()) == [1, 2, 3] and {STAGES[s] for s in table['stage']} == {'fused'}
+        executor.remove_node(third)
+        third.on_shutdown()
+        third.destroy_node()
+
+        # A damaged map: named on /diagnostics, and the worker starts empty instead of crashing.
+        (tmp_path / 'map' / MAP_FILE).write_text('{"format": "frodo_object_map", "version": 1, "obj')
+        fourth = _optimiser('optim_node', Parameter('resume', value=str(tmp_path / 'map')))
+        executor.add_node(fourth)
+        assert probe.spin(lambda: 'truncated or corrupt' in probe.status('optim_node').get('last_error', ''), 20)
+        assert fourth.estimates == {} and probe.status('optim_node')['warnings'] == '1'
+        executor.remove_node(fourth)
+        fourth.on_shutdown()
+        fourth.destroy_node()
+    finally:
+        executor.shutdown()
+        rclpy.shutdown()
