@@ -15,6 +15,8 @@ Sections (each a function returning plain data; a section that cannot run says w
 - `soak` (not in the default set: minutes to an hour): `soak_frames` frames of the demo bag repeated with shifted
   stamps at `soak_rate` x real time through the whole graph; peak and growing memory per node, backlog, latency
   per frame, /diagnostics intervals (frodo_bringup.soak; OUT/soak/soak.json + soak.png).
+- `optim_workers` (not in the default set: one demo run per worker count): objects per minute against the
+  number of optimiser workers, 1 and 2 (frodo_bringup.bench_workers).
 """
 from __future__ import annotations
 
@@ -318,6 +320,7 @@ def run_all(out: Path, quick: bool, device: str, sections: list[str], log: Calla
         'association': lambda: association_latency([2, 10] if quick else [1, 2, 5, 10, 20], 40 if quick else 200),
         'end_to_end': lambda: end_to_end(DEMO_BAG, out / 'demo_run', rate=1.0),
         'soak': lambda: _soak(out / 'soak', soak_frames, soak_rate, doc['machine'], log),
+        'optim_workers': lambda: _optim_workers(out / 'optim_workers', quick, log),
     }
     doc: dict[str, Any] = {'machine': machine_info(device), 'quick': quick, 'paper': PAPER}
     for name in sections:
@@ -342,8 +345,13 @@ def _soak(out: Path, frames: int, rate: float, machine: dict[str, Any], log: Cal
     return soak(out, frames=frames, rate=rate, subtitle=subtitle, log=log)
 
 
+def _optim_workers(out: Path, quick: bool, log: Callable[[str], None]) -> dict[str, Any]:
+    from frodo_bringup.bench_workers import objects_per_minute
+    return objects_per_minute(DEMO_BAG, out, workers=(1, 2), rate=1.0, quick=quick, log=log)
+
+
 SECTIONS = ('decoder', 'bag_read', 'sparse', 'dense', 'association', 'end_to_end')   # the default set
-ALL_SECTIONS = SECTIONS + ('soak',)
+ALL_SECTIONS = SECTIONS + ('soak', 'optim_workers')
 
 
 def summary(doc: dict[str, Any]) -> str:
@@ -390,4 +398,9 @@ def summary(doc: dict[str, Any]) -> str:
             lines.append(f"  {name}: RSS peak {m['peak_mb']} MB, end {m['end_mb']} MB, growth over the second half "
                          f"{m['growth_mb_per_1000_frames']} MB per 1000 frames; backlog max "
                          f"{s['backlog_frames'].get(name, {}).get('max')} frames")
+    for r in doc.get('optim_workers', {}).get('rows', []):
+        lines.append(f"optimiser workers {r['workers']}: {r['objects']} objects ({', '.join(r['stages'])}), "
+                     f"{r['objects_per_minute']} objects/min ({r['first_image_to_last_map_s']} s from the first image "
+                     f"to the last map change, {r['wall_s']} s wall, exit {r['exit_code']}) on "
+                     f"{doc['optim_workers']['cpu_cores']} CPUs")
     return '\n'.join(lines)

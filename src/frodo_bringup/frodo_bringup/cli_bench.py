@@ -18,7 +18,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--quick', action='store_true',
                         help='fewer views, objects, frames and repeats (a few minutes on 2 CPUs)')
     parser.add_argument('--only', nargs='+', choices=ALL_SECTIONS, metavar='SECTION',
-                        help=f'run only these sections ({", ".join(ALL_SECTIONS)}); default: all but soak')
+                        help=f'run only these sections ({", ".join(ALL_SECTIONS)}); default: all but soak and optim_workers')
     parser.add_argument('--soak-frames', type=int, default=10_000, metavar='N',
                         help='frames of the soak run (demo bag repeated; default: %(default)s)')
     parser.add_argument('--soak-rate', type=float, default=2.0, metavar='X',

@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
-from frodo_bringup.graph import NODES, GraphError, parse_node_spec, select_nodes, with_nodes
+from frodo_bringup.graph import (NODES, GraphError, GraphNode, optimiser_workers, parse_node_spec, select_nodes,
+                                 with_nodes, with_optimiser_parameters)
 from frodo_bringup.launcher import FAILURE_POLICIES, Launcher, describe_returncode
 from frodo_bringup.readiness import GraphMonitor
 from frodo_bringup.session import RosSession, stop_on_signals
@@ -28,13 +30,36 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='when a node dies: stop the graph, restart the node (3 tries), or ignore it '
                              '(default: %(default)s)')
     parser.add_argument('--log-dir', metavar='DIR', help='also write each node\'s output to DIR/<node>.log')
+    add_optimiser_arguments(parser)
+
+
+def add_optimiser_arguments(parser: argparse.ArgumentParser) -> None:
+    """--optim-workers, --map-dir, --resume (shared by `frodo launch` and `frodo run`)."""
+    parser.add_argument('--optim-workers', type=int, default=1, metavar='N',
+                        help='run N optimiser processes (optim_node_0 ... optim_node_<N-1>), worker k taking the '
+                             'objects with id %% N == k; their shares merge into one /frodo/objects '
+                             '(default: %(default)s)')
+    parser.add_argument('--map-dir', metavar='DIR',
+                        help='the optimiser saves its object map (objects.json + meshes/) to DIR after each '
+                             'published stage (DIR/worker_<k>/ with several workers)')
+    parser.add_argument('--resume', metavar='DIR',
+                        help='the optimiser starts from the object map in DIR (also each time it is restarted) '
+                             'and saves to DIR unless --map-dir names another folder')
+
+
+def optimiser_nodes(nodes: tuple[GraphNode, ...], args: argparse.Namespace) -> tuple[GraphNode, ...]:
+    """`nodes` with the optimiser split into --optim-workers workers, saving to --map-dir, resuming --resume."""
+    resume = str(Path(args.resume).resolve()) if args.resume else None
+    map_dir = str(Path(args.map_dir).resolve()) if args.map_dir else resume
+    return with_optimiser_parameters(optimiser_workers(nodes, args.optim_workers), map_dir=map_dir, resume=resume)
 
 
 def run(args: argparse.Namespace) -> int:
     """Start the graph and return when it is down: 0 when no node failed, 1 otherwise, 2 on bad options."""
     try:
         graph = with_nodes(NODES, [parse_node_spec(spec) for spec in args.add_node])
-        launcher = Launcher(select_nodes(args.nodes, graph), args.params, on_failure=args.on_failure,
+        launcher = Launcher(optimiser_nodes(select_nodes(args.nodes, graph), args), args.params,
+                            on_failure=args.on_failure,
                             log_dir=args.log_dir)
     except GraphError as err:
         print(f'frodo launch: error: {err}', file=sys.stderr)

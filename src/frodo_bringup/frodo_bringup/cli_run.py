@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from frodo_bringup.cli_launch import add_optimiser_arguments
 from frodo_bringup.graph import GraphError
 from frodo_bringup.player import PlayerError
 from frodo_bringup.run import EXIT_GRAPH_FAILED, EXIT_INTERRUPTED, EXIT_NOT_DONE, run_bag
@@ -26,6 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='rrd: also run the Rerun viewer node, saving DIR/frodo.rrd (ground truth included) '
                              '(default: %(default)s)')
     parser.add_argument('--no-progress', action='store_true', help='no progress bar')
+    add_optimiser_arguments(parser)
     parser.epilog = (f'Exit code: 0 done, {EXIT_GRAPH_FAILED} a node failed, 2 bad arguments, {EXIT_NOT_DONE} '
                      f'timeout (outputs still written), {EXIT_INTERRUPTED} interrupted.')
 
@@ -35,7 +37,9 @@ def run(args: argparse.Namespace) -> int:
     with stop_on_signals() as stop:
         try:
             result = run_bag(args.bag, args.out, args.params, timeout=args.timeout, rate=args.rate,
-                             viewer=args.viewer, stop=stop, progress=not args.no_progress)
+                             viewer=args.viewer, stop=stop, progress=not args.no_progress,
+                             optim_workers=args.optim_workers, map_dir=args.map_dir or args.resume,
+                             resume=args.resume)
         except (PlayerError, GraphError) as err:
             print(f'frodo run: error: {err}', file=sys.stderr)
             return 2

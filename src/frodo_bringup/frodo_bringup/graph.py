@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib
 import os
+import re
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,11 +23,17 @@ PACKAGE = 'frodo_bringup'
 
 @dataclass(frozen=True)
 class GraphNode:
-    """One node of the graph: ROS node name, Python module (exposes `main()` and `PARAMS`), ROS package."""
+    """One node of the graph: ROS node name, Python module (exposes `main()` and `PARAMS`), ROS package.
+
+    params_key: the YAML section its parameters come from when that is not its name (optimiser workers
+    `optim_node_<k>` read `optim_node:`); parameters: (name, value) pairs set on top of every params file.
+    """
 
     name: str
     module: str
     package: str
+    params_key: str = ''
+    parameters: tuple[tuple[str, Any], ...] = ()
 
 
 # The graph, in data-flow order. Node name == console script name == launch file executable.
@@ -40,8 +47,62 @@ NODES: tuple[GraphNode, ...] = (
 VIEWER = GraphNode('viewer_node', 'frodo_bringup.viewer_node', 'frodo_bringup')
 # Every node whose parameters the shipped YAML holds.
 ALL_NODES = NODES + (VIEWER,)
-# The node whose diagnostics (`state`, `pending_objects`) say when a bag is fully processed.
+# The node whose diagnostics (`state`, `pending_objects`) say when a bag is fully processed; with several
+# workers (`--optim-workers N`) they are `optim_node_0` ... `optim_node_<N-1>`, all of which must be done.
 OPTIMISER = 'optim_node'
+_WORKER_NAME = re.compile(rf'{OPTIMISER}_\d+')
+
+
+def is_optimiser(name: str) -> bool:
+    """True for the optimiser node and its workers' names."""
+    return name == OPTIMISER or bool(_WORKER_NAME.fullmatch(name))
+
+
+def optimiser_workers(nodes: Sequence[GraphNode], count: int) -> tuple[GraphNode, ...]:
+    """`nodes` with the optimiser replaced by `count` workers `optim_node_0..count-1` splitting the objects by
+    id (parameters `worker_index`, `worker_count`; each reads the `optim_node` parameters); one keeps it."""
+    if count < 1:
+        raise GraphError(f'--optim-workers must be at least 1, got {count}')
+    if count == 1:
+        return tuple(nodes)
+    out: list[GraphNode] = []
+    for node in nodes:
+        if node.name != OPTIMISER:
+            out.append(node)
+            continue
+        out += [GraphNode(f'{OPTIMISER}_{k}', node.module, node.package, params_key=OPTIMISER,
+                          parameters=node.parameters + (('worker_index', k), ('worker_count', count)))
+                for k in range(count)]
+    return tuple(out)
+
+
+def with_optimiser_parameters(nodes: Sequence[GraphNode], **parameters: Any) -> tuple[GraphNode, ...]:
+    """`nodes` with `parameters` (None values left out) set on the optimiser and its workers."""
+    extra = tuple((k, v) for k, v in parameters.items() if v is not None)
+    return tuple(GraphNode(n.name, n.module, n.package, n.params_key, n.parameters + extra)
+                 if is_optimiser(n.name) and extra else n for n in nodes)
+
+
+def section_parameters(params_files: Iterable[str | os.PathLike], key: str) -> dict[str, Any]:
+    """The `ros__parameters` of node `key` (`key:` or `/key:`) across params files, later files winning."""
+    merged: dict[str, Any] = {}
+    for path in params_files:
+        try:
+            document = yaml.safe_load(Path(path).read_text()) or {}
+        except (OSError, yaml.YAMLError) as err:
+            raise GraphError(f'parameter file {path}: {err}') from err
+        for name in (key, f'/{key}'):
+            section = document.get(name) if isinstance(document, dict) else None
+            if isinstance(section, dict) and isinstance(section.get('ros__parameters'), dict):
+                merged.update(section['ros__parameters'])
+    return merged
+
+
+def ros_parameter_arguments(node: GraphNode, params_files: Sequence[str | os.PathLike]) -> list[str]:
+    """`-p name:=value` arguments of a node running under another name than its params section, then its own."""
+    values = section_parameters(params_files, node.params_key) if node.params_key else {}
+    values.update(dict(node.parameters))
+    return [arg for name, value in values.items() for arg in ('-p', f'{name}:={_yaml_scalar(value)}')]
 
 
 class GraphError(RuntimeError):

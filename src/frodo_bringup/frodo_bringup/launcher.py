@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable, Sequence, TextIO
 
-from frodo_bringup.graph import GraphError, GraphNode, resolve_params_file, shipped_presets
+from frodo_bringup.graph import GraphError, GraphNode, resolve_params_file, ros_parameter_arguments, shipped_presets
 
 FAILURE_POLICIES = ('stop', 'restart', 'ignore')
 TAIL_LINES = 20
@@ -97,11 +97,16 @@ class Launcher:
             raise GraphError(f'unknown failure policy {on_failure!r}; use one of {", ".join(FAILURE_POLICIES)}')
         if not nodes:
             raise GraphError('no nodes to launch')
+        names = [n.name for n in nodes]
+        if len(set(names)) != len(names):
+            raise GraphError(f'node names must be unique: {", ".join(sorted({n for n in names if names.count(n) > 1}))}')
         self.params_files = [resolve_params_file(p) for p in params_files]
         for path in self.params_files:
             if not path.is_file():
                 raise GraphError(f'parameter file not found: {path} (a file, or a shipped preset: '
                                  f'{", ".join(shipped_presets())})')
+        for node in nodes:   # a params file that is not YAML is refused here, not when a node is spawned
+            ros_parameter_arguments(node, self.params_files)
         self.on_failure = on_failure
         self.log_dir = Path(log_dir) if log_dir is not None else None
         self.output = output if output is not None else sys.stdout
@@ -185,7 +190,7 @@ class Launcher:
                    '--ros-args', '-r', f'__node:={node.name}']
         for path in self.params_files:
             command += ['--params-file', str(path)]
-        return command
+        return command + ros_parameter_arguments(node, self.params_files)   # after the files: they win
 
     def _child_env(self) -> dict[str, str]:
         env = dict(self.env if self.env is not None else os.environ)

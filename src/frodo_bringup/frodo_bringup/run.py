@@ -1,10 +1,10 @@
 """`run_bag`: one complete reconstruction of a bag (what `frodo run` does).
 
 Launch the graph, wait until its nodes are up and subscribed, play the bag, wait until the optimiser
-reports `state` = idle and `pending_objects` = 0 after the bag has finished (CONTRACT.md "Done") and
-no node's diagnostics counters move any more (see `OutputCollector.done`),
-write the output files from the latched `/frodo/objects`, `/frodo/boxes` and `/frodo/object_states`,
-shut the graph down. With `viewer='rrd'` the Rerun viewer node records the run to `DIR/frodo.rrd`.
+(every optimiser worker) reports `state` = idle and `pending_objects` = 0 after the bag has finished
+(CONTRACT.md "Done") and no node's diagnostics counters move any more (see `OutputCollector.done`),
+write the output files from `/frodo/objects`, `/frodo/boxes` and `/frodo/object_states` (each worker's
+messages merged by object id), shut the graph down. With `viewer='rrd'` the Rerun viewer node records the run to `DIR/frodo.rrd`.
 """
 from __future__ import annotations
 
@@ -21,11 +21,13 @@ import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
-from visualization_msgs.msg import MarkerArray
+import numpy as np
+from visualization_msgs.msg import Marker, MarkerArray
 
-from frodo_bringup.graph import NODES, OPTIMISER, VIEWER, GraphNode
+from frodo_bringup.graph import (NODES, OPTIMISER, VIEWER, GraphNode, is_optimiser, optimiser_workers,
+                                 with_optimiser_parameters)
 from frodo_bringup.launcher import Launcher, NodeExit
-from frodo_bringup.outputs import summary_table, write_outputs
+from frodo_bringup.outputs import apply_markers, summary_table, write_outputs
 from frodo_bringup.player import Backpressure, PlayStats, Player, PlayerError
 from frodo_bringup.session import RosSession
 from frodo_common import topics
@@ -62,33 +64,43 @@ class RunResult:
     seconds: float = 0.0
 
 
-class OutputCollector:
-    """Keeps the latest `/frodo/objects`, `/frodo/boxes`, `/frodo/object_states` and each node's last
-    DONE_REPORTS `/diagnostics` reports (receive time, key/values)."""
+def image_counter(name: str) -> str | None:
+    """The node's image counter in IMAGE_COUNTERS (optimiser workers count as the optimiser), or None."""
+    return IMAGE_COUNTERS.get(OPTIMISER if is_optimiser(name) else name)
 
-    def __init__(self, node: Node, optimiser: str = OPTIMISER):
-        self.optimiser = optimiser
-        self.objects: MarkerArray | None = None
-        self.boxes: MarkerArray | None = None
-        self.states: PointCloud2 | None = None
+
+class OutputCollector:
+    """Merges every `/frodo/objects`, `/frodo/boxes` and `/frodo/object_states` message by object id (several
+    optimiser workers each publish their share) and keeps each node's last DONE_REPORTS `/diagnostics`
+    reports (receive time, key/values).
+
+    optimisers: the nodes that must all be idle for the graph to be done (the optimiser or its workers).
+    """
+
+    def __init__(self, node: Node, optimisers: Sequence[str] = (OPTIMISER,)):
+        self.optimisers = list(optimisers)
+        self.objects: dict[int, Marker] | None = None
+        self.boxes: dict[int, Marker] | None = None
+        self.states: dict[int, np.void] = {}
         self._reports: dict[str, collections.deque[tuple[float, dict[str, str]]]] = {}
         self._lock = threading.Lock()
-        node.create_subscription(MarkerArray, topics.OBJECTS, self._on_objects, topics.LATCHED_QOS)
-        node.create_subscription(MarkerArray, topics.BOXES, self._on_boxes, topics.LATCHED_QOS)
-        node.create_subscription(PointCloud2, OBJECT_STATES, self._on_states, topics.LATCHED_QOS)
+        node.create_subscription(MarkerArray, topics.OBJECTS, self._on_objects, topics.MERGED_QOS)
+        node.create_subscription(MarkerArray, topics.BOXES, self._on_boxes, topics.MERGED_QOS)
+        node.create_subscription(PointCloud2, OBJECT_STATES, self._on_states, topics.MERGED_QOS)
         node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diagnostics, 50)
 
     def _on_objects(self, msg: MarkerArray) -> None:
         with self._lock:
-            self.objects = msg
+            self.objects = apply_markers(self.objects or {}, msg)
 
     def _on_boxes(self, msg: MarkerArray) -> None:
         with self._lock:
-            self.boxes = msg
+            self.boxes = apply_markers(self.boxes or {}, msg)
 
     def _on_states(self, msg: PointCloud2) -> None:
+        table = cloud_to_table(msg)
         with self._lock:
-            self.states = msg
+            self.states.update((int(row['object_id']), row) for row in table)
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
         now = time.monotonic()
@@ -101,8 +113,8 @@ class OutputCollector:
         """Images taken by the slowest of `names`, from the counters of their latest reports
         (`IMAGE_COUNTERS`); None while none of them has reported one."""
         with self._lock:
-            counts = [int(reports[-1][1].get(IMAGE_COUNTERS[name], 0))
-                      for name in names if name in IMAGE_COUNTERS and (reports := self._reports.get(name))]
+            counts = [int(reports[-1][1].get(image_counter(name), 0))
+                      for name in names if image_counter(name) and (reports := self._reports.get(name))]
         return min(counts) if counts else None
 
     def missing_reports(self, names: Sequence[str]) -> list[str]:
@@ -120,15 +132,16 @@ class OutputCollector:
     def done(self, names: Sequence[str], since: float) -> bool:
         """The graph has finished what it got before `since`.
 
-        CONTRACT.md "Done": the optimiser reports `state` idle with `pending_objects` 0, here in its last
-        DONE_REPORTS reports after `since`; and, so that frames still queued upstream are not missed,
-        every node in `names` reported the same key/values (counters) in its last DONE_REPORTS reports.
+        CONTRACT.md "Done": the optimiser (every worker) reports `state` idle with `pending_objects` 0, here
+        in its last DONE_REPORTS reports after `since`; and, so that frames still queued upstream are not
+        missed, every node in `names` reported the same key/values (counters) in its last DONE_REPORTS reports.
         """
         with self._lock:
-            optimiser = self._recent(self.optimiser, since)
-            if not optimiser or not all(v.get('state') == 'idle' and v.get('pending_objects') == '0'
-                                        for v in optimiser):
-                return False
+            for name in self.optimisers:
+                optimiser = self._recent(name, since)
+                if not optimiser or not all(v.get('state') == 'idle' and v.get('pending_objects') == '0'
+                                            for v in optimiser):
+                    return False
             for name in names:
                 recent = self._recent(name, since)
                 if not recent or any(values != recent[0] for values in recent[1:]):
@@ -136,19 +149,27 @@ class OutputCollector:
         return True
 
     def snapshot(self) -> tuple[MarkerArray | None, MarkerArray | None, dict[int, dict[str, Any]]]:
-        """(objects, boxes, per-object info from the optimiser's states) as last received."""
+        """(objects, boxes, per-object info from the optimisers' states) merged from everything received; the
+        states of objects no longer on /frodo/objects or /frodo/boxes (deleted) are left out."""
         with self._lock:
-            objects, boxes, states = self.objects, self.boxes, self.states
-        info = states_to_records(cloud_to_table(states)) if states is not None else {}
-        return objects, boxes, info
+            objects, boxes = dict(self.objects or {}), dict(self.boxes or {})
+            rows = [row for oid, row in sorted(self.states.items()) if oid in objects or oid in boxes]
+            got_objects, got_boxes = self.objects is not None, self.boxes is not None
+        info = states_to_records(np.array(rows, dtype=rows[0].dtype)) if rows else {}
+        return (MarkerArray(markers=[objects[k] for k in sorted(objects)]) if got_objects else None,
+                MarkerArray(markers=[boxes[k] for k in sorted(boxes)]) if got_boxes else None, info)
 
 
 def run_bag(bag: str | os.PathLike, out_dir: str | os.PathLike, params_files: Sequence[str | os.PathLike] = (),
             timeout: float = 300.0, rate: float = 1.0, viewer: str = 'none',
             nodes: Sequence[GraphNode] = NODES, startup_timeout: float = 60.0,
             stop: threading.Event | None = None, output: TextIO | None = None, progress: bool = True,
-            env: dict[str, str] | None = None, player_factory: Callable[..., Player] = Player) -> RunResult:
+            env: dict[str, str] | None = None, player_factory: Callable[..., Player] = Player,
+            optim_workers: int = 1, map_dir: str | os.PathLike | None = None,
+            resume: str | os.PathLike | None = None) -> RunResult:
     """Reconstruct one bag end to end; `timeout` bounds the wait for the graph after the bag has played.
+    `optim_workers` optimiser processes split the objects; the optimiser saves its object map to `map_dir`
+    and starts from the one in `resume` (`frodo launch --map-dir / --resume`).
     `player_factory(node, bag, rate=, progress=, ground_truth=)` makes the player (e.g. a
     `long_bag.RepeatingPlayer` for soak runs).
 
@@ -160,6 +181,9 @@ def run_bag(bag: str | os.PathLike, out_dir: str | os.PathLike, params_files: Se
     started = time.monotonic()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    nodes = with_optimiser_parameters(optimiser_workers(nodes, optim_workers),
+                                      map_dir=str(Path(map_dir).resolve()) if map_dir else None,
+                                      resume=str(Path(resume).resolve()) if resume else None)
     if viewer == 'rrd':
         nodes, params_files = tuple(nodes) + (VIEWER,), [*params_files, _viewer_params(out)]
     launcher = Launcher(nodes, params_files, on_failure='stop', log_dir=out / 'logs', output=output, env=env,
@@ -173,7 +197,7 @@ def run_bag(bag: str | os.PathLike, out_dir: str | os.PathLike, params_files: Se
         if missing:
             raise PlayerError(f'{player.reader.path} has no message on the required input(s) {", ".join(missing)} '
                               f'(CONTRACT.md); it has {", ".join(sorted(player.reader.topics()))}')
-        collector = OutputCollector(session.node)
+        collector = OutputCollector(session.node, [n for n in launcher.node_names if is_optimiser(n)] or [OPTIMISER])
         launcher.start()
         result.play, result.done = _play_and_wait(player, collector, launcher, timeout, startup_timeout, stop)
         result.records = write_outputs(out, *collector.snapshot())
@@ -231,8 +255,8 @@ def _play_and_wait(player: Player, collector: OutputCollector, launcher: Launche
             return stats, True
         stop.wait(0.1)
     if not stop.is_set():
-        launcher.log(f'graph not done within {timeout:.0f} s of the bag\'s end ({OPTIMISER} idle with 0 pending '
-                     'objects and all node counters steady)')
+        launcher.log(f'graph not done within {timeout:.0f} s of the bag\'s end ({", ".join(collector.optimisers)} '
+                     'idle with 0 pending objects and all node counters steady)')
     return stats, False
 
 

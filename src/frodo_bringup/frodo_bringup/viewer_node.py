@@ -54,7 +54,7 @@ class ViewerNode(FrodoNode):
         self.create_subscription(Image, topics.DETECTIONS, self.guarded(self._on_detections), q)
         self.create_subscription(PointCloud2, topics.SLAM_POINTS, self.guarded(self._on_slam), q)
         self.create_subscription(MarkerArray, topics.TRACKS, self.guarded(self._on_tracks), topics.LATCHED_QOS)
-        self.create_subscription(MarkerArray, topics.OBJECTS, self.guarded(self._on_objects), topics.LATCHED_QOS)
+        self.create_subscription(MarkerArray, topics.OBJECTS, self.guarded(self._on_objects), topics.MERGED_QOS)
         if self.params['show_ground_truth']:
             self.create_subscription(MarkerArray, topics.GROUND_TRUTH, self.guarded(self._on_ground_truth),
                                      topics.LATCHED_QOS)
@@ -104,10 +104,14 @@ class ViewerNode(FrodoNode):
             rotation_axis_angles=[rr.RotationAxisAngle(axis=[0, 0, 1], radians=b[2]) for b in boxes],
             labels=[f'{m.ns} {m.id}' for m in cubes]))
 
+    @staticmethod
+    def _entity(root: str, m: Marker) -> str:
+        return f'{root}/{m.ns.replace(" ", "_")}_{m.id}'
+
     def _log_meshes(self, msg: MarkerArray, root: str, alpha: float) -> set[str]:
         logged = set()
         for m in msg.markers:
-            path = f'{root}/{m.ns.replace(" ", "_")}_{m.id}'
+            path = self._entity(root, m)
             if m.action == Marker.DELETE:
                 rr.log(path, rr.Clear(recursive=True))
             elif m.type == Marker.TRIANGLE_LIST and m.points:
@@ -120,8 +124,13 @@ class ViewerNode(FrodoNode):
     def _on_objects(self, msg: MarkerArray) -> None:
         if msg.markers:
             self._time(msg.markers[0].header.stamp)
-        self.shown_objects = self._log_meshes(msg, 'world/objects', 1.0)
+        # Optimiser workers each publish their share: an object stays shown until its own DELETE.
+        cleared = {self._entity('world/objects', m) for m in msg.markers if m.action == Marker.DELETE}
+        self.shown_objects = (self.shown_objects - cleared) | self._log_meshes(msg, 'world/objects', 1.0)
         self.count('maps_logged')
+
+    def diagnostic_values(self) -> dict:
+        return {'objects_shown': len(self.shown_objects)}
 
     def _on_ground_truth(self, msg: MarkerArray) -> None:
         for m in msg.markers:

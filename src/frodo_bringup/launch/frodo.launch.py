@@ -1,15 +1,18 @@
 """Launch the FroDO node graph on a ROS 2 install: `ros2 launch frodo_bringup frodo.launch.py`.
 
 Arguments: `params_file:=FILE` (default: the shipped config/frodo.yaml, generated from the nodes'
-parameter specs by `frodo params --write`; a file of overrides is enough, nodes default the rest) and
-`viewer:=true` (also start the Rerun viewer node). The node list mirrors `frodo_bringup/graph.py`
+parameter specs by `frodo params --write`; a file of overrides is enough, nodes default the rest),
+`viewer:=true` (also start the Rerun viewer node) and `optim_workers:=N` (N optimiser processes
+`optim_node_0..N-1` splitting the objects by id, each with the file's `optim_node` parameters, as
+`frodo launch --optim-workers N`). The node list mirrors `frodo_bringup/graph.py`
 (a test checks that they agree); `frodo launch` is the same graph without ROS 2 launch installed.
 """
 import os
 
+import yaml
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
@@ -22,6 +25,28 @@ NODES = (
     ('frodo_optim', 'optim_node'),
 )
 VIEWER = ('frodo_bringup', 'viewer_node')
+OPTIMISER = ('frodo_optim', 'optim_node')
+
+
+def optimiser_nodes(context) -> list:
+    """One optim_node, or `optim_workers` workers optim_node_<k> (a node named otherwise does not read the
+    file's `optim_node` section, so each gets that section's values, then its worker index and count)."""
+    package, executable = OPTIMISER
+    params_file = LaunchConfiguration('params_file').perform(context)
+    count = int(LaunchConfiguration('optim_workers').perform(context))
+    if count < 1:
+        raise ValueError(f'optim_workers must be at least 1, got {count}')
+    if count == 1:
+        return [Node(package=package, executable=executable, name=executable, parameters=[params_file],
+                     output='screen', emulate_tty=True)]
+    with open(params_file) as f:
+        document = yaml.safe_load(f) or {}
+    section = {}
+    for key in (executable, f'/{executable}'):
+        section.update((document.get(key) or {}).get('ros__parameters') or {})
+    return [Node(package=package, executable=executable, name=f'{executable}_{k}', output='screen',
+                 emulate_tty=True, parameters=[params_file, {**section, 'worker_index': k, 'worker_count': count}])
+            for k in range(count)]
 
 
 def generate_launch_description() -> LaunchDescription:
@@ -33,10 +58,13 @@ def generate_launch_description() -> LaunchDescription:
                               description='ROS 2 parameter YAML for the FroDO nodes'),
         DeclareLaunchArgument('viewer', default_value='false',
                               description='also start the Rerun viewer node (true/false)'),
+        DeclareLaunchArgument('optim_workers', default_value='1',
+                              description='optimiser processes splitting the objects by id'),
     ]
     actions += [Node(package=package, executable=executable, name=executable, parameters=[params_file],
                      output='screen', emulate_tty=True)
-                for package, executable in NODES]
+                for package, executable in NODES if (package, executable) != OPTIMISER]
+    actions.append(OpaqueFunction(function=optimiser_nodes))
     package, executable = VIEWER
     actions.append(Node(package=package, executable=executable, name=executable, parameters=[params_file],
                         output='screen', emulate_tty=True, condition=IfCondition(LaunchConfiguration('viewer'))))

@@ -43,8 +43,8 @@ class _Probe:
         self.merged: dict[int, Marker] = {}
         self.states: list[PointCloud2] = []
         self.diags: list[DiagnosticArray] = []
-        self.node.create_subscription(MarkerArray, topics.OBJECTS, self._on_objects, topics.LATCHED_QOS)
-        self.node.create_subscription(PointCloud2, OBJECT_STATES, self.states.append, topics.LATCHED_QOS)
+        self.node.create_subscription(MarkerArray, topics.OBJECTS, self._on_objects, topics.MERGED_QOS)
+        self.node.create_subscription(PointCloud2, OBJECT_STATES, self.states.append, topics.MERGED_QOS)
         self.node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self.diags.append, 50)
         self.tracks = self.node.create_publisher(MarkerArray, topics.TRACKS, topics.LATCHED_QOS)
         self.codes = self.node.create_publisher(PointCloud2, topics.OBJECT_CODES, topics.LATCHED_QOS)

@@ -1,0 +1,152 @@
+"""More than one optimiser and the saved object map, from the command line's side (issue 12): worker nodes get
+unique names and their parameters (the `optim_node` section of the params files, then worker index/count), the
+run collector merges the workers' shares by object id, `frodo run --optim-workers 2` waits for every worker,
+and in the real graph on the demo bag two workers each reconstruct their share, the merged map has every
+object once, and a worker killed with SIGKILL comes back with its saved objects at once."""
+from __future__ import annotations
+
+import io
+import json
+import os
+import signal
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from sensor_msgs.msg import PointCloud2
+from visualization_msgs.msg import MarkerArray
+
+from frodo_bringup.graph import (NODES, GraphError, is_optimiser, optimiser_workers, ros_parameter_arguments,
+                                 with_optimiser_parameters)
+from frodo_bringup.launcher import Launcher
+from frodo_bringup.player import Player
+from frodo_bringup.readiness import GraphMonitor
+from frodo_bringup.run import EXIT_OK, OutputCollector, run_bag
+from frodo_bringup.session import RosSession
+from frodo_bringup.testing import stub, wait_until, write_contract_bag
+from frodo_common import conversions as conv
+from frodo_common import topics
+from frodo_optim.states import OBJECT_STATES, STATES_DTYPE
+
+BAG = Path(__file__).resolve().parents[1] / 'bags' / 'demo_walk.mcap'
+
+
+def test_workers_get_unique_names_and_the_optimiser_parameters(tmp_path):
+    params = tmp_path / 'params.yaml'
+    params.write_text("'/**':\n  ros__parameters:\n    diagnostics_period: 0.5\n"
+                      "optim_node:\n  ros__parameters:\n    dense_enabled: false\n    prior: my prior\n")
+    later = tmp_path / 'later.yaml'
+    later.write_text('/optim_node:\n  ros__parameters:\n    prior: furniture\n')
+    nodes = with_optimiser_parameters(optimiser_workers(NODES, 3), map_dir='/maps/a', resume=None)
+    names = [n.name for n in nodes]
+    assert names == ['detection_node', 'association_node', 'shape_node', 'optim_node_0', 'optim_node_1',
+                     'optim_node_2']
+    assert [is_optimiser(n) for n in names] == [False] * 3 + [True] * 3 and not is_optimiser('optim_node_x')
+    assert optimiser_workers(NODES, 1) == NODES
+    with pytest.raises(GraphError, match='at least 1'):
+        optimiser_workers(NODES, 0)
+    # A worker runs under another name: the optimiser's section of every file (later files win), then its own.
+    assert ros_parameter_arguments(nodes[4], [params, later]) == [
+        '-p', 'dense_enabled:=false', '-p', 'prior:=furniture', '-p', 'worker_index:=1', '-p', 'worker_count:=3',
+        '-p', 'map_dir:=/maps/a']
+    assert ros_parameter_arguments(nodes[0], [params]) == []
+    command = Launcher(nodes, [params])._command(nodes[5])
+    assert command[command.index('-r') + 1] == '__node:=optim_node_2' and 'worker_index:=2' in command
+    assert command.index('--params-file') < command.index('worker_index:=2')   # the worker's own values win
+    with pytest.raises(GraphError, match='unique'):
+        Launcher(NODES + NODES[:1], [])
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text('optim_node: [unclosed\n')
+    with pytest.raises(GraphError, match='bad.yaml'):
+        Launcher(nodes, [bad])
+
+
+def test_the_run_collector_merges_the_workers_shares_by_object_id():
+    def share(ids, deleted=()):
+        markers = [conv.delete_marker('chair', oid, 1, 'world') for oid in deleted]
+        markers += [conv.box_to_marker(np.array([oid, 0.0, 0.0]), np.ones(3), 0.0, 'chair', oid, 1, 'world')
+                    for oid in ids]
+        table = np.zeros(len(ids), dtype=STATES_DTYPE)
+        table['object_id'], table['category'], table['scale'] = ids, 62, 1.0
+        return MarkerArray(markers=markers), conv.table_to_cloud(table, 1, 'world')
+
+    with RosSession('frodo_test_workers_collector') as session:
+        collector = OutputCollector(session.node, ['optim_node_0', 'optim_node_1'])
+        pubs = [(session.node.create_publisher(MarkerArray, topics.OBJECTS, topics.LATCHED_QOS),
+                 session.node.create_publisher(PointCloud2, OBJECT_STATES, topics.LATCHED_QOS)) for _ in range(2)]
+        for (objects, states), (markers, table) in zip(pubs, (share([0, 2]), share([1, 3]))):
+            objects.publish(markers)
+            states.publish(table)
+        assert wait_until(lambda: collector.snapshot()[0] is not None
+                          and len(collector.snapshot()[0].markers) == 4 and len(collector.snapshot()[2]) == 4, 10)
+        markers, table = share([1], deleted=[3])     # worker 1 drops object 3: worker 0's objects stay
+        pubs[1][0].publish(markers)
+        pubs[1][1].publish(table)
+        assert wait_until(lambda: [m.id for m in collector.snapshot()[0].markers] == [0, 1, 2], 10)
+        assert sorted(collector.snapshot()[2]) == [0, 1, 2]      # the deleted object's state is left out
+
+
+def test_frodo_run_with_two_workers_waits_for_both(tmp_path):
+    write_contract_bag(tmp_path / 'in.mcap', frames=10, period=0.05)
+    params = tmp_path / 'params.yaml'
+    params.write_text("'/**':\n  ros__parameters:\n    diagnostics_period: 0.2\n"
+                      'optim_node:\n  ros__parameters:\n    act_as_optimiser: true\n')
+    output = io.StringIO()
+    result = run_bag(tmp_path / 'in.mcap', tmp_path / 'out', [params], timeout=15, rate=0,
+                     nodes=(stub('detection_node'), stub('optim_node')), startup_timeout=30, output=output,
+                     progress=False, optim_workers=2)
+    assert result.exit_code == EXIT_OK and result.done, output.getvalue()
+    for k in range(2):   # each worker got the optimiser's section (it acts as one) and logs on its own
+        assert (tmp_path / 'out' / 'logs' / f'optim_node_{k}.log').is_file()
+    assert 'started optim_node_0' in output.getvalue() and 'started optim_node_1' in output.getvalue()
+    assert [r['id'] for r in json.loads((tmp_path / 'out' / 'objects.json').read_text())['objects']] == [7]
+
+
+@pytest.mark.skipif(not BAG.exists(), reason='demo bag missing')
+def test_two_workers_on_the_demo_bag_share_the_objects_and_a_killed_one_resumes_its_map(tmp_path):
+    params = tmp_path / 'params.yaml'
+    params.write_text("'/**':\n  ros__parameters:\n    diagnostics_period: 0.5\n"
+                      'optim_node:\n  ros__parameters:\n    dense_enabled: false\n    sparse_iterations: 5\n'
+                      '    sparse_yaw_candidates: 8\n    mesh_resolution: 32\n')
+    map_dir = tmp_path / 'map'
+    nodes = with_optimiser_parameters(optimiser_workers(NODES, 2), map_dir=str(map_dir), resume=str(map_dir))
+    names = [n.name for n in nodes]
+    workers = [n for n in names if is_optimiser(n)]
+    session = RosSession('frodo_test_workers')
+    lines: list[str] = []
+    launcher = Launcher(nodes, [params], on_failure='restart', restart_delay=0.5, output=io.StringIO())
+    try:
+        monitor = GraphMonitor(session.node, names, lines.append, pids=lambda: launcher.pids, settle=0.5, period=0.25)
+        collector = OutputCollector(session.node, workers)
+        launcher.start()
+        assert monitor.wait_ready(120), lines
+        player = Player(session.node, BAG, rate=1.0, progress=False)
+        assert not player.wait_for_subscribers(10, wanted=[topics.IMAGE, topics.POSE], settle=0.5)
+        stats = player.play(threading.Event())
+        finished = time.monotonic()
+        assert stats.total > 0
+        assert wait_until(lambda: collector.done(names, since=finished), 240), {
+            w: collector._reports.get(w) for w in workers}
+        objects, _, info = collector.snapshot()
+        ids = [m.id for m in objects.markers]
+        assert len(ids) == len(set(ids)) >= 3 and sorted(info) == sorted(ids), (ids, sorted(info))
+        saved = {k: [r['id'] for r in json.loads((map_dir / f'worker_{k}' / 'objects.json').read_text())['objects']]
+                 for k in range(2)}
+        assert sorted(saved[0] + saved[1]) == sorted(ids)             # every object once, in its worker's map
+        assert all(i % 2 == k for k in range(2) for i in saved[k]) and saved[0] and saved[1], saved
+
+        old_pid = launcher.pids['optim_node_1']
+        os.kill(old_pid, signal.SIGKILL)
+        assert wait_until(lambda: launcher.pids['optim_node_1'] != old_pid and 'optim_node_1' in monitor.up(), 90), lines
+        latest = collector._reports['optim_node_1'][-1][1]
+        # the restarted worker has its objects back before any new frame (the bag has ended)
+        assert latest['objects_resumed'] == str(len(saved[1])) and latest['objects'] == str(len(saved[1])), latest
+        late_listener = OutputCollector(session.node, workers)   # latched: every worker's current share
+        assert wait_until(lambda: late_listener.snapshot()[0] is not None
+                          and sorted(m.id for m in late_listener.snapshot()[0].markers) == sorted(ids), 20)
+    finally:
+        launcher.shutdown(timeout=30)
+        session.close()
+    assert [e.name for e in launcher.failures] == ['optim_node_1']
