@@ -47,8 +47,8 @@ from frodo_association.boxes import CLASS_SHAPES, Box3D, box_iou, clip_boxes, fi
 from frodo_association.config import ASSOCIATION_DTYPE, AssociationConfig
 from frodo_association.pruning import prune_detections
 from frodo_association.segments import (box_segments, clip_segments_to_heights, complete_truncated_boxes,
-                                        gated_assignment, lsq_center, lsq_centers, point_segment_distance,
-                                        ray_segments, surface_intervals)
+                                        depth_intervals, gated_assignment, lsq_center, lsq_centers,
+                                        point_segment_distance, ray_segments, surface_intervals)
 from frodo_common.categories import category_by_id
 from frodo_common.geometry import invert_transform
 from frodo_detection.core import instance_boxes, resolution_scale
@@ -196,7 +196,14 @@ class Associator:
             else np.asarray(surface_depth, dtype=np.float64).reshape(-1)
         if len(surface) != len(labels):
             raise ValueError(f'surface_depth has {len(surface)} entries for {len(labels)} detections')
-        has_depth = valid & np.isfinite(surface) & (surface > 0)
+        # Implausible surface depths are dropped: the map's points inside a mask are on the object or behind it,
+        # and an untextured chair has none, so its "surface" is the table or wall behind (0.5-2 m too far). A box
+        # that wide cannot come from an object of the class that far: beyond the size interval's far end, or
+        # wider than the class's typical horizontal diagonal (widened by depth_margin) spans there.
+        diag = np.array([np.hypot(*class_shape(c, r)[:2]) for c, r in zip(coco, size_ranges)]).reshape(-1)
+        far = np.minimum(depth_intervals(boxes, K, size_ranges, cfg.depth_margin, cfg.min_depth, cfg.max_depth)[:, 1],
+                         K[0, 0] * diag * (1 + cfg.depth_margin) / np.maximum(boxes[:, 2] - boxes[:, 0], 1e-6))
+        has_depth = valid & np.isfinite(surface) & (surface > 0) & (surface <= far)
         occluded = np.zeros(len(labels), dtype=bool)
         if has_depth.any():
             shapes = np.array([class_shape(c, r) for c, r in zip(coco[has_depth], size_ranges[has_depth])])
@@ -661,15 +668,23 @@ class Associator:
                 kept.append(e)
         return len(kept)
 
-    def publish_blocker(self, object_id: int, evidence: int | None = None) -> str | None:
+    def publish_blocker(self, object_id: int, reliable: int | None = None, with_truncated: int | None = None
+                        ) -> str | None:
         """Why an unpublished cluster is not published (the first publishing condition it fails, in words), or
-        None when it meets the rule (`_update_confirmation` publishes it then). evidence: its detections that
-        count towards publishing (reliable ones; with truncated ones while `from_truncated`), counted if None."""
+        None when it meets the rule (`_update_confirmation` publishes it then). reliable / with_truncated: its
+        reliable detections and its reliable plus truncated ones (counted when None).
+        Its truncated detections count towards publishing while it was opened by the deferred truncated rule,
+        and also once they and the reliable ones come from truncated_min_views frames (the standard of that
+        rule): a table never seen whole, whose cluster one reliable detection opened, is published like one
+        the deferred rule opened (one detection per frame, so detections are frames)."""
         cfg = self.cfg
         t = self.tracks[object_id]
-        if evidence is None:
+        if reliable is None or with_truncated is None:
             rows = self.members(object_id)
-            evidence = int(np.count_nonzero(self.rows.reliable[rows] | (t.from_truncated & self.rows.truncated[rows])))
+            reliable = int(np.count_nonzero(self.rows.reliable[rows]))
+            with_truncated = int(np.count_nonzero(self.rows.reliable[rows] | self.rows.truncated[rows]))
+        pooled = t.from_truncated or 0 < cfg.truncated_min_views <= with_truncated
+        evidence = with_truncated if pooled else reliable
         if evidence < cfg.min_track_views:
             return f'{evidence} reliable detections < min_track_views {cfg.min_track_views}'
         ratio, n_view, in_view = self._view_stats(object_id)
@@ -679,23 +694,26 @@ class Associator:
             return None
         if cfg.confirm_views <= 0:
             return f'{n_view} frames in view < confirm_window {cfg.confirm_window} (keyframe rule off)'
-        if in_view:
-            return f'{n_view} frames in view < confirm_window {cfg.confirm_window}, still in view'
-        views = self.distinct_views(object_id, not t.from_truncated)
+        views = self.distinct_views(object_id, not pooled)
+        if in_view and views < 2 * cfg.confirm_views:     # an object still in view at the sequence's end, too
+            return (f'{n_view} frames in view < confirm_window {cfg.confirm_window}, still in view from {views} '
+                    f'viewpoints < 2 x confirm_views {cfg.confirm_views}')
         if views < cfg.confirm_views:
             return f'{views} viewpoints < confirm_views {cfg.confirm_views}'
         return None
 
     def _update_confirmation(self, recheck: bool) -> tuple[set[int], dict[int, int]]:
-        """Confirm clusters with at least min_track_views reliable detections (not truncated, not too small:
-        those that may open clusters; for clusters opened by the deferred truncated rule, truncated ones count), in
+        """Confirm clusters (`publish_blocker` says None) with at least min_track_views reliable detections (not
+        truncated, not too small: those that may open clusters; truncated ones count for clusters opened by the
+        deferred truncated rule and once there are truncated_min_views of them with the reliable ones), in
         view for at least confirm_window frames and a hit ratio of at least
         min_hit_ratio; with `recheck`, withdraw confirmed clusters whose hit ratio fell below drop_hit_ratio
         (over at least 2 * min_track_views frames in view). Keyframe rule (confirm_views > 0): a cluster whose
         centre has left the view before confirm_window frames (sparse keyframes: an object in view in 3 of 35)
-        is published when its reliable detections come from confirm_views distinct viewpoints (views far apart
-        are independent evidence, as consecutive video frames are not); while in view it waits for
-        confirm_window as before. Returns (frames whose rows change, withdrawn ids)."""
+        is published when its detections come from confirm_views distinct viewpoints (views far apart are
+        independent evidence, as consecutive video frames are not); while in view it needs twice as many (not
+        the first partial views, but an object still in view when the sequence ends is published too).
+        Returns (frames whose rows change, withdrawn ids)."""
         cfg = self.cfg
         counts = np.bincount(self.rows.assign[(self.rows.assign >= 0) & self.rows.reliable], minlength=self.next_id)
         all_counts = np.bincount(self.rows.assign[(self.rows.assign >= 0) & (self.rows.reliable | self.rows.truncated)],
@@ -705,9 +723,8 @@ class Associator:
         for t in self.tracks.values():
             if t.from_truncated and counts[t.object_id] >= cfg.min_track_views:
                 t.from_truncated = False          # now seen whole often enough: an ordinary cluster
-            n = all_counts[t.object_id] if t.from_truncated else counts[t.object_id]
             if not t.confirmed:
-                if self.publish_blocker(t.object_id, int(n)) is None:
+                if self.publish_blocker(t.object_id, int(counts[t.object_id]), int(all_counts[t.object_id])) is None:
                     t.confirmed = True
                     changed.append(t.object_id)
             elif recheck:
