@@ -142,14 +142,14 @@ class Associator:
         self.rows = _Table(segment=((2, 3), np.float64, 0.0), box=((4,), np.float64, 0.0),
                            edge_valid=((4,), bool, False), label=((), np.int64, 0), coco=((), np.int64, 0),
                            frame=((), np.int64, 0), assign=((), np.int64, -1), kept=((), bool, False),
-                           valid=((), bool, False), reliable=((), bool, False), truncated=((), bool, False))
+                           valid=((), bool, False), reliable=((), bool, False), truncated=((), bool, False),
+                           sent_id=((), np.int64, -1), sent_kept=((), bool, False))   # as last published
         self.frames = _Table(stamp=((), np.int64, 0), K=((3, 3), np.float64, 0.0),
                              T_world_camera=((4, 4), np.float64, 0.0), T_camera_world=((4, 4), np.float64, 0.0),
                              size=((2,), np.float64, 0.0), start=((), np.int64, 0), stop=((), np.int64, 0))
         self.frame_index: dict[int, int] = {}
         self.tracks: dict[int, ObjectTrack] = {}
         self.next_id = 0
-        self.published: dict[int, tuple[np.ndarray, np.ndarray]] = {}   # stamp -> (object ids, kept) sent
         self.merges = 0
         self._frames_since_pass = 0                 # full-pass cadence: frames and camera travel since the last
         self._travel = 0.0
@@ -263,7 +263,8 @@ class Associator:
         dirty.discard(fi)
         self._prune_frames(sorted(dirty | {fi}))
         table = self.frame_table(stamp)
-        self.published[stamp] = (table['object_id'].copy(), table['kept'].astype(bool))
+        sl = self._frame_rows(fi)
+        self.rows.sent_id[sl], self.rows.sent_kept[sl] = table['object_id'], table['kept']
         removed = {k: v for k, v in removed.items() if not (k in self.tracks and self.tracks[k].confirmed)}
         return AssociationUpdate(stamp, table, self._changed_stamps(dirty), removed, bool(removed))
 
@@ -323,16 +324,18 @@ class Associator:
         return ids, self.rows.kept[rows] & (ids >= 0)
 
     def _changed_stamps(self, frame_indices: set[int]) -> list[int]:
-        """Stamps of the given frames whose rows differ from what was last published (and mark them sent)."""
-        out = []
-        for fi in sorted(frame_indices):
-            stamp = int(self.frames.stamp[fi])
-            ids, kept = self._row_ids(self._frame_rows(fi))
-            old = self.published.get(stamp)
-            if old is None or not (np.array_equal(old[0], ids) and np.array_equal(old[1], kept)):
-                self.published[stamp] = (ids, kept)
-                out.append(stamp)
-        return out
+        """Stamps of the given (already published) frames whose rows differ from what was last published (and
+        mark them sent), in frame order."""
+        rows = self._rows_of_frames(np.array(sorted(frame_indices), dtype=np.int64))
+        ids, kept = self._row_ids(rows)
+        changed = (ids != self.rows.sent_id[rows]) | (kept != self.rows.sent_kept[rows])
+        self.rows.sent_id[rows], self.rows.sent_kept[rows] = ids, kept
+        return self.frames.stamp[np.unique(self.rows.frame[rows[changed]])].tolist()
+
+    def _rows_of_frames(self, fis: np.ndarray) -> np.ndarray:
+        """Detection rows of the frames fis (F,), frame after frame."""
+        starts, counts = self.frames.start[fis], self.frames.stop[fis] - self.frames.start[fis]
+        return np.arange(counts.sum()) + np.repeat(starts - (np.cumsum(counts) - counts), counts)
 
     def _frames_of(self, object_ids) -> set[int]:
         """Frame indices with a detection of any of the given clusters."""
@@ -765,8 +768,7 @@ class Associator:
         if not frame_indices:
             return
         fis = np.asarray(frame_indices, dtype=np.int64)
-        starts, stops = self.frames.start[fis], self.frames.stop[fis]
-        rows = np.concatenate([np.arange(a, b) for a, b in zip(starts, stops)])
+        rows = self._rows_of_frames(fis)
         assign = self.rows.assign[rows]
         if not self.cfg.prune:
             self.rows.kept[rows] = assign >= 0
@@ -774,7 +776,7 @@ class Associator:
         boxed = [t for t in self.confirmed_tracks() if t.box is not None]
         corners = np.array([t.box.corners() for t in boxed]).reshape(-1, 8, 3)
         proj, valid = project_boxes(self.frames.K[fis], self.frames.T_camera_world[fis], corners)
-        position = np.repeat(np.arange(len(fis)), stops - starts)
+        position = np.repeat(np.arange(len(fis)), self.frames.stop[fis] - self.frames.start[fis])
         slot = np.full(self.next_id + 1, -1, np.int64)
         slot[[t.object_id for t in boxed]] = np.arange(len(boxed))
         index = np.where(assign >= 0, slot[assign], -1)
