@@ -33,9 +33,10 @@ from frodo_bringup.run import IMAGE_COUNTERS, run_bag
 from frodo_bringup.session import RosSession
 from frodo_common import topics
 
-# Figures of the node reports that show a queue or a cache: recorded with every sample.
+# Figures of the node reports that show a queue, a cache or a per-frame cost: recorded with every sample.
 SIZE_KEYS = ('frames_cached', 'detections', 'clusters', 'objects', 'codes', 'views_held', 'dense_views_held',
-             'pending_objects', 'frames_missed')
+             'pending_objects', 'frames_missed', 'frames_republished', 'association_ms_mean', 'refine_ms_mean',
+             'evidence_ms_mean')
 
 
 def rss_mb(pid: int) -> float | None:

@@ -15,6 +15,7 @@ from frodo_common.categories import split_instance_label
 from frodo_common.frame_cache import FrameCache
 from frodo_common.node import FrodoNode, run_node
 from frodo_common.params import ParamSpec
+from frodo_shape.code_store import CodeStore
 from frodo_shape.crops import square_crop
 from frodo_shape.fusion import fuse_mean, fuse_vote
 from frodo_shape.prior import ShapePrior
@@ -27,6 +28,8 @@ PARAMS = (
     ParamSpec('crop_size', 128, 'Side of the square encoder input crop in pixels.'),
     ParamSpec('crop_margin', 0.1, 'Context margin around the detection box, as a fraction of its longer side.'),
     ParamSpec('image_topic', topics.IMAGE, 'Colour image topic.'),
+    ParamSpec('max_codes_per_object', 256, 'Codes kept per object for fusion (bounded memory and per-frame cost on '
+              'long runs): past this, every second one in stamp order is dropped (code_store.CodeStore).'),
 )
 
 CODE_DIM = 64
@@ -44,8 +47,7 @@ class ShapeNode(FrodoNode):
         if self.params['fusion'] not in ('mean', 'vote'):
             raise ValueError(f"fusion must be 'mean' or 'vote', got {self.params['fusion']!r}")
         self.cache = FrameCache(['image', 'detections', 'associations'], self.params['frame_cache_size'])
-        self.codes: dict[tuple[int, int], np.ndarray] = {}        # (stamp, label) -> code
-        self.assignment: dict[tuple[int, int], int] = {}          # (stamp, label) -> object id (kept only)
+        self.store = CodeStore(int(self.params['max_codes_per_object']))   # codes and their objects, bounded
         self.codes_pub = self.create_publisher(PointCloud2, topics.CODES, topics.FRAME_QOS)
         self.objects_pub = self.create_publisher(PointCloud2, topics.OBJECT_CODES, topics.LATCHED_QOS)
         self.create_subscription(Image, self.params['image_topic'],
@@ -75,12 +77,11 @@ class ShapeNode(FrodoNode):
         table = conv.cloud_to_table(frame.parts['associations'])
         rows = table[(table['kept'] == 1) & (table['object_id'] >= 0)]
         stamp = frame.stamp_ns
-        for key in [k for k in self.assignment if k[0] == stamp]:
-            del self.assignment[key]
         if len(rows) == 0:
+            self.store.assign_frame(stamp, {})
             self._publish_objects(frame.parts['associations'].header.frame_id)
             return
-        todo = [r for r in rows if (stamp, int(r['label'])) not in self.codes]
+        todo = [r for r in rows if (stamp, int(r['label'])) not in self.store]
         if todo:
             rgb = conv.image_to_rgb(frame.parts['image'])
             labels = conv.image_to_numpy(frame.parts['detections'])
@@ -90,29 +91,29 @@ class ShapeNode(FrodoNode):
                                              self.params['crop_margin']) for r in todo))
             codes = self.prior.encode(np.stack(crops), np.stack(masks))
             for r, code in zip(todo, codes):
-                self.codes[(stamp, int(r['label']))] = np.asarray(code, dtype=np.float32)
+                self.store.add((stamp, int(r['label'])), code)
             self.count('crops_encoded', len(todo))
         out = np.zeros(len(rows), dtype=CODES_DTYPE)
         for i, r in enumerate(rows):
-            key = (stamp, int(r['label']))
-            self.assignment[key] = int(r['object_id'])
-            out[i] = (r['object_id'], r['label'], self.codes[key])
+            out[i] = (r['object_id'], r['label'], self.store.codes[(stamp, int(r['label']))])
+        self.store.assign_frame(stamp, {int(r['label']): int(r['object_id']) for r in rows})
+        if len(self.store) - len(self.store.assignment) > self.cache.capacity:   # amortised: unassigned codes
+            self.store.forget_unassigned(lambda s: s in self.cache.frames)      # of frames no re-send can reach
         frame_id = frame.parts['associations'].header.frame_id
         self.codes_pub.publish(conv.table_to_cloud(out, stamp, frame_id))
         self._publish_objects(frame_id)
 
     def fused_codes(self) -> np.ndarray:
         """Fused code per object (table of OBJECT_CODES_DTYPE) from the current assignment."""
-        members: dict[int, list[tuple[int, int]]] = {}
-        for key, oid in self.assignment.items():
-            members.setdefault(oid, []).append(key)
+        members = self.store.members()
         out = np.zeros(len(members), dtype=OBJECT_CODES_DTYPE)
         for i, (oid, keys) in enumerate(sorted(members.items())):
-            codes = np.stack([self.codes[k] for k in keys])
+            codes = np.stack([self.store.codes[k] for k in keys])
             cats = [split_instance_label(label)[0] for _, label in keys]
             fused = fuse_mean(codes) if self.params['fusion'] == 'mean' else \
                 fuse_vote(codes, self.prior.training_codes, k=4)
-            out[i] = (oid, max(set(cats), key=cats.count), len(keys), np.asarray(fused, dtype=np.float32))
+            out[i] = (oid, max(set(cats), key=cats.count), self.store.num_views(oid, len(keys)),
+                      np.asarray(fused, dtype=np.float32))
         return out
 
     def _publish_objects(self, frame_id: str) -> None:
@@ -122,7 +123,7 @@ class ShapeNode(FrodoNode):
         self.count('object_codes_published')
 
     def diagnostic_values(self) -> dict:
-        return {'objects': len(set(self.assignment.values())), 'codes': len(self.codes),
+        return {'objects': len(set(self.store.assignment.values())), 'codes': len(self.store),
                 'prior': self.params['prior'], 'frames_cached': len(self.cache)}
 
 
