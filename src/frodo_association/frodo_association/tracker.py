@@ -39,7 +39,7 @@ is in plain pixels.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -262,6 +262,7 @@ class Associator:
         dirty |= merge_frames | confirm_frames
         dirty.discard(fi)
         self._prune_frames(sorted(dirty | {fi}))
+        dirty |= self._keep_best_views(dirty | {fi}) - {fi}
         table = self.frame_table(stamp)
         sl = self._frame_rows(fi)
         self.rows.sent_id[sl], self.rows.sent_kept[sl] = table['object_id'], table['kept']
@@ -288,6 +289,7 @@ class Associator:
             return AssociationUpdate()
         dirty = set(np.unique(self.rows.frame[np.isin(self.rows.assign, fitted)]).tolist())
         self._prune_frames(sorted(dirty))
+        dirty |= self._keep_best_views(dirty)
         return AssociationUpdate(republish=self._changed_stamps(dirty), tracks_changed=True, fitted=fitted)
 
     def frame_table(self, stamp: int) -> np.ndarray:
@@ -783,6 +785,44 @@ class Associator:
         kept = prune_detections(self.rows.box[rows], index, proj[position], valid[position],
                                 self.frames.size[fis][position], self.cfg)
         self.rows.kept[rows] = kept & (assign >= 0)
+
+    def _keep_best_views(self, frame_indices: set[int]) -> set[int]:
+        """Pruning never starves a published object (own extension): one with a box and detections in the given
+        frames but fewer than min_track_views kept ones keeps its min_track_views detections whose boxes best
+        match its projected 3D box clipped to the image (IoU > 0), among those passing the size and overlap tests.
+        The occlusion test fails every view of an object cut by the border in all of them (a table never seen
+        whole) and every view of one whose box is off (a stool under a chair-sized box prior); without kept views
+        the shape stage never encodes it and it is never reconstructed. Returns the frames whose flags changed."""
+        cfg = self.cfg
+        if not cfg.prune or not frame_indices:
+            return set()
+        assigned = self.rows.assign >= 0
+        kept_counts = np.bincount(self.rows.assign[assigned & self.rows.kept], minlength=self.next_id)
+        touched = np.unique(self.rows.assign[self._rows_of_frames(np.array(sorted(frame_indices)))])
+        starved = [self.tracks[o] for o in touched.tolist() if o >= 0 and self.tracks[o].confirmed
+                   and self.tracks[o].box is not None and kept_counts[o] < cfg.min_track_views]
+        if not starved:
+            return set()
+        boxed = [t for t in self.confirmed_tracks() if t.box is not None]
+        slot = {t.object_id: k for k, t in enumerate(boxed)}
+        corners = np.array([t.box.corners() for t in boxed])
+        changed: set[int] = set()
+        for t in starved:
+            rows = self.members(t.object_id)
+            fis = self.rows.frame[rows]
+            proj, valid = project_boxes(self.frames.K[fis], self.frames.T_camera_world[fis], corners)
+            sizes = self.frames.size[fis]
+            own = slot[t.object_id]
+            # Size and overlap tests as in pruning; the occlusion test is replaced by the ranking below.
+            passing = prune_detections(self.rows.box[rows], np.full(len(rows), own), proj, valid, sizes,
+                                       replace(cfg, occlusion_iou=-1.0))
+            score = np.where(passing & valid[:, own],
+                             box_iou(self.rows.box[rows], clip_boxes(proj[:, own][:, None], sizes)[:, 0]), 0.0)
+            order = np.argsort(-score, kind='stable')[:cfg.min_track_views]
+            best = rows[order][(score[order] > 0) & ~self.rows.kept[rows[order]]]
+            self.rows.kept[best] = True
+            changed |= set(self.rows.frame[best].tolist())
+        return changed
 
 
 def detections_from_instances(instances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
