@@ -44,7 +44,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from frodo_association.boxes import CLASS_SHAPES, Box3D, box_iou, clip_boxes, fit_box, footprint_overlap, project_boxes
-from frodo_association.config import ASSOCIATION_DTYPE, AssociationConfig
+from frodo_association.config import ASSOCIATION_DTYPE, KEYFRAME_SETTINGS, AssociationConfig
 from frodo_association.pruning import prune_detections
 from frodo_association.segments import (box_segments, clip_segments_to_heights, complete_truncated_boxes,
                                         depth_intervals, gated_assignment, lsq_center, lsq_centers,
@@ -154,6 +154,10 @@ class Associator:
         self._frames_since_pass = 0                 # full-pass cadence: frames and camera travel since the last
         self._travel = 0.0
         self._last_eye: np.ndarray | None = None
+        self._turns: list[float] = []               # camera rotation (rad) between consecutive frames
+        self._last_rotation: np.ndarray | None = None
+        self.keyframe_input = False                 # auto_keyframes switched to KEYFRAME_SETTINGS
+        self._corners: dict[int, tuple[Box3D, np.ndarray]] = {}   # object id -> (its box, that box's corners)
 
     # ------------------------------------------------------------ public API
     def add_frame(self, stamp: int, K: np.ndarray, T_world_camera: np.ndarray, size: tuple[int, int],
@@ -172,6 +176,8 @@ class Associator:
         """
         if stamp in self.frame_index:
             return AssociationUpdate(stamp, self.frame_table(stamp))
+        self._recognise_keyframes(np.asarray(T_world_camera, dtype=np.float64), np.asarray(K, dtype=np.float64),
+                                  size[0])
         cfg = self.cfg
         labels = np.asarray(labels, dtype=np.int64).reshape(-1)
         boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
@@ -268,6 +274,25 @@ class Associator:
         self.rows.sent_id[sl], self.rows.sent_kept[sl] = table['object_id'], table['kept']
         removed = {k: v for k, v in removed.items() if not (k in self.tracks and self.tracks[k].confirmed)}
         return AssociationUpdate(stamp, table, self._changed_stamps(dirty), removed, bool(removed))
+
+    def _recognise_keyframes(self, T_world_camera: np.ndarray, K: np.ndarray, width: int) -> None:
+        """auto_keyframes: switch to KEYFRAME_SETTINGS (for good) once the input looks like keyframes far apart,
+        i.e. an object crossing the view would stay in it for fewer than half the confirm_window frames: median
+        rotation per frame (4 frames at least) x confirm_window > 2 x horizontal field of view. The baseline
+        between frames does not separate the two (0.2-0.4 m on the rendered walks, 0.5-0.6 m between keyframes);
+        the rotation does (4-5 deg per frame on the walks, 10 on an orbit, 13-25 between hand-held keyframes)."""
+        R = T_world_camera[:3, :3]
+        if self._last_rotation is not None:
+            cos = (np.trace(self._last_rotation.T @ R) - 1.0) / 2.0
+            self._turns.append(float(np.arccos(np.clip(cos, -1.0, 1.0))))
+        self._last_rotation = R.copy()
+        cfg = self.cfg
+        if not cfg.auto_keyframes or cfg.confirm_views > 0 or len(self._turns) < 4 or not np.all(np.isfinite(R)):
+            return
+        fov = 2.0 * np.arctan(width / (2.0 * K[0, 0]))
+        if np.median(self._turns) * cfg.confirm_window > 2.0 * fov:
+            self.cfg = replace(cfg, **KEYFRAME_SETTINGS)
+            self.keyframe_input = True
 
     def refine_boxes(self, max_fits: int | None = None) -> AssociationUpdate:
         """Fit the boxes of the objects that grew most since their last fit (at most `max_fits`, default
@@ -404,6 +429,17 @@ class Associator:
             if np.all(np.isfinite(c)):
                 self.tracks[int(oid)].center = c
 
+    def _box_corners(self, boxed: list[ObjectTrack]) -> np.ndarray:
+        """World corners (O, 8, 3) of the boxes of the given tracks, cached per box (pruning projects them every
+        frame; a box is replaced, never changed in place, when it is refitted or merged)."""
+        out = np.empty((len(boxed), 8, 3))
+        for k, t in enumerate(boxed):
+            cached = self._corners.get(t.object_id)
+            if cached is None or cached[0] is not t.box:
+                cached = self._corners[t.object_id] = (t.box, t.box.corners())
+            out[k] = cached[1]
+        return out
+
     def _explaining_objects(self, rows: np.ndarray) -> np.ndarray:
         """Per detection row, the published object of its class (with a box, not the row's own cluster) whose
         projected 3D box, clipped to the image, has the highest IoU with the detection box if that is at least
@@ -413,8 +449,7 @@ class Associator:
         if not boxed or len(rows) == 0:
             return out
         fis, at = np.unique(self.rows.frame[rows], return_inverse=True)      # project once per frame
-        corners = np.array([t.box.corners() for t in boxed])
-        proj, valid = project_boxes(self.frames.K[fis], self.frames.T_camera_world[fis], corners)
+        proj, valid = project_boxes(self.frames.K[fis], self.frames.T_camera_world[fis], self._box_corners(boxed))
         proj, valid = clip_boxes(proj, self.frames.size[fis])[at], valid[at]
         iou = box_iou(self.rows.box[rows][:, None, :], proj)
         ids = np.array([t.object_id for t in boxed])
@@ -776,8 +811,7 @@ class Associator:
             self.rows.kept[rows] = assign >= 0
             return
         boxed = [t for t in self.confirmed_tracks() if t.box is not None]
-        corners = np.array([t.box.corners() for t in boxed]).reshape(-1, 8, 3)
-        proj, valid = project_boxes(self.frames.K[fis], self.frames.T_camera_world[fis], corners)
+        proj, valid = project_boxes(self.frames.K[fis], self.frames.T_camera_world[fis], self._box_corners(boxed))
         position = np.repeat(np.arange(len(fis)), self.frames.stop[fis] - self.frames.start[fis])
         slot = np.full(self.next_id + 1, -1, np.int64)
         slot[[t.object_id for t in boxed]] = np.arange(len(boxed))
