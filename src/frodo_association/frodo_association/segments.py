@@ -79,12 +79,19 @@ def point_segment_distance(points: np.ndarray, segments: np.ndarray) -> np.ndarr
     return np.linalg.norm(points[None] - (a + t[..., None] * ab), axis=2)
 
 
-def _group_sum(values: np.ndarray, group: np.ndarray, n_groups: int) -> np.ndarray:
-    """Sums of values (N, ...) per group (N,) in 0..n_groups-1 -> (n_groups, ...), one bincount."""
+def _group_sum(values: np.ndarray, group: np.ndarray, n_groups: int, idx: np.ndarray | None = None) -> np.ndarray:
+    """Sums of values (N, ...) per group (N,) in 0..n_groups-1 -> (n_groups, ...), one bincount. idx: the flat
+    bin of every element of values (`_group_bins`), when the caller sums several arrays of that shape."""
     flat = values.reshape(len(values), -1)
     k = flat.shape[1]
-    idx = (group[:, None] * k + np.arange(k)).ravel()
+    if idx is None:
+        idx = _group_bins(group, k)
     return np.bincount(idx, flat.ravel(), minlength=n_groups * k).reshape((n_groups,) + values.shape[1:])
+
+
+def _group_bins(group: np.ndarray, k: int) -> np.ndarray:
+    """Flat bincount bins (N * k,) of the elements of an (N, k) array summed per group (N,)."""
+    return (group[:, None] * k + np.arange(k)).ravel()
 
 
 def lsq_centers(segments: np.ndarray, group: np.ndarray, n_groups: int, prior_weight: float = 1e-3,
@@ -110,11 +117,12 @@ def lsq_centers(segments: np.ndarray, group: np.ndarray, n_groups: int, prior_we
     diag = (count + w + (count == 0))[:, None, None] * np.eye(3)       # empty groups stay solvable
     state = np.zeros(len(segments), dtype=np.int8)                      # 0 interior, -1 start, 1 end
     x = np.zeros((n_groups, 3))
+    bins9, bins3 = _group_bins(group, 9), _group_bins(group, 3)
     for _ in range(max_iter):
         line = state == 0
-        A = diag - _group_sum(uu * line[:, None, None], group, n_groups)
+        A = diag - _group_sum(uu * line[:, None, None], group, n_groups, bins9)
         anchor = np.where(line[:, None], line_rhs, np.where((state < 0)[:, None], a, b))
-        x = np.linalg.solve(A, (_group_sum(anchor, group, n_groups) + prior)[..., None])[..., 0]
+        x = np.linalg.solve(A, (_group_sum(anchor, group, n_groups, bins3) + prior)[..., None])[..., 0]
         t = np.einsum('ij,ij->i', x[group] - a, ab) / length2
         new_state = np.where(t <= 0.0, -1, np.where(t >= 1.0, 1, 0)).astype(np.int8)
         if np.array_equal(new_state, state):
