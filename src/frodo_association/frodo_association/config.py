@@ -56,6 +56,7 @@ class AssociationConfig:
     occluded_fraction: float = 0.5
     confirm_views: int = 0
     view_separation: float = 0.3
+    auto_keyframes: bool = True
     height_prior_weight: float = 0.0
     box_overlap_merge: float = 0.3
 
@@ -91,7 +92,9 @@ CONFIG_DOC: dict[str, str] = {
     'truncated_min_views': 'Deferred opening (own extension, not in the paper): at full passes, unassigned '
                            'truncated detections farther than lambda from every centre of their class are clustered '
                            'among themselves (DP-means, lambda); a group with detections from at least this many '
-                           'frames opens a cluster (0: off), which its truncated detections may publish.',
+                           'frames opens a cluster (0: off), which its truncated detections may publish; in any '
+                           'cluster, truncated detections count towards publishing once it has this many reliable '
+                           'plus truncated ones (a table never seen whole).',
     'truncated_merge_distance': 'A cluster opened by the deferred rule merges with a cluster of its class closer than '
                                 'this (m) (its centre is biased by the truncation); groups this close to an existing '
                                 'cluster open none.',
@@ -132,9 +135,16 @@ CONFIG_DOC: dict[str, str] = {
                          'joins clusters but opens none and does not count towards publishing (0: off).',
     'confirm_views': 'Keyframe rule: a cluster with min_track_views reliable detections and the hit ratio whose '
                      'centre left the view before confirm_window frames is published when its detections come from '
-                     'this many distinct viewpoints (camera centres at least view_separation apart) (0: off; '
+                     'this many distinct viewpoints (camera centres at least view_separation apart), one still in '
+                     'view from twice as many (0: off; '
                      'KEYFRAME_SETTINGS: 3 for keyframe input, off for video, where it published spurious clusters).',
     'view_separation': 'Camera centres closer than this (m) count as one viewpoint for confirm_views.',
+    'auto_keyframes': 'Keyframe input is recognised and KEYFRAME_SETTINGS applied (when confirm_views is 0): once '
+                      'the median camera rotation per frame (over all frames, from 2 x confirm_window on) times '
+                      'confirm_window exceeds '
+                      'twice the horizontal field of view, an object crossing the view stays in it for fewer than '
+                      'half the confirm_window frames (keyframes far apart: 13-25 deg per frame; video-rate walks '
+                      '4-5, an orbit 10).',
     'height_prior_weight': 'Weight of the class height prior (log-height residual against the typical height of '
                            'the class, CLASS_SHAPES) in the box fit; the horizontal sizes keep size_prior_weight.',
     'box_overlap_merge': 'At full passes, two published objects of one class whose 3D box footprints overlap by at '

@@ -201,7 +201,9 @@ def trace_objects(assoc: Associator, scene: SynthScene, gt: np.ndarray, tracks: 
         if obj_index in by_object:
             t = tracks[by_object[obj_index]]
             err = np.linalg.norm(t.box.center - obj.center) if t.box is not None else float('nan')
-            fate = f'published as {t.object_id}, box centre {err:.2f} m off' + (' (placement)' if err > far else '')
+            kept = int(np.count_nonzero(assoc.rows.kept[assoc.members(t.object_id)]))
+            fate = (f'published as {t.object_id} with {kept} kept detections, box centre {err:.2f} m off'
+                    + (' (placement)' if err > far else ''))
         elif len(rows) == 0:
             fate = 'never detected (or no detection matched it)'
         else:

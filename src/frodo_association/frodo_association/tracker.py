@@ -278,7 +278,9 @@ class Associator:
     def _recognise_keyframes(self, T_world_camera: np.ndarray, K: np.ndarray, width: int) -> None:
         """auto_keyframes: switch to KEYFRAME_SETTINGS (for good) once the input looks like keyframes far apart,
         i.e. an object crossing the view would stay in it for fewer than half the confirm_window frames: median
-        rotation per frame (4 frames at least) x confirm_window > 2 x horizontal field of view. The baseline
+        rotation per frame x confirm_window > 2 x horizontal field of view, over all frames so far once there are
+        2 x confirm_window of them (a walk may start with a fast turn; clusters of earlier keyframes that left
+        the view unpublished are published by the keyframe rule then). The baseline
         between frames does not separate the two (0.2-0.4 m on the rendered walks, 0.5-0.6 m between keyframes);
         the rotation does (4-5 deg per frame on the walks, 10 on an orbit, 13-25 between hand-held keyframes)."""
         R = T_world_camera[:3, :3]
@@ -287,7 +289,8 @@ class Associator:
             self._turns.append(float(np.arccos(np.clip(cos, -1.0, 1.0))))
         self._last_rotation = R.copy()
         cfg = self.cfg
-        if not cfg.auto_keyframes or cfg.confirm_views > 0 or len(self._turns) < 4 or not np.all(np.isfinite(R)):
+        if not cfg.auto_keyframes or cfg.confirm_views > 0 or len(self._turns) < 2 * cfg.confirm_window \
+                or not np.all(np.isfinite(R)):
             return
         fov = 2.0 * np.arctan(width / (2.0 * K[0, 0]))
         if np.median(self._turns) * cfg.confirm_window > 2.0 * fov:

@@ -1,6 +1,7 @@
 """Keyframe front end, publishing (issue 9): implausible landmark depths are dropped, truncated detections count
 once there are truncated_min_views of them, an object still in view at the sequence end is published from twice
-confirm_views viewpoints, and a detection in one keyframe never is."""
+confirm_views viewpoints, a detection in one keyframe never is, and keyframe input is recognised from the camera
+rotation between frames."""
 import numpy as np
 
 from frodo_association.config import KEYFRAME_SETTINGS, AssociationConfig
@@ -71,3 +72,27 @@ def test_an_object_in_view_at_the_end_of_the_keyframes_is_published_but_a_one_ke
     # Video settings (no keyframe rule) wait for confirm_window frames in view.
     c = _run([chair], poses, AssociationConfig(), keep=lambda k, i, box: k >= 2 and box[0] > 2 and box[2] < SIZE[0] - 3)
     assert c.confirmed_tracks() == [] and 'keyframe rule off' in c.publish_blocker(0)
+
+
+def _turning_camera(deg_per_frame: float, n: int = 30) -> list[np.ndarray]:
+    """A camera on a circle of radius 2 m looking outwards, turning deg_per_frame between frames."""
+    out = []
+    for k in range(n):
+        a = np.radians(deg_per_frame * k)
+        eye = np.array([2.0 * np.cos(a), 2.0 * np.sin(a), 1.2])
+        out.append(look_at(eye, eye + np.array([np.cos(a), np.sin(a), -0.2])))
+    return out
+
+
+def test_keyframe_input_is_recognised_from_the_rotation_between_frames():
+    def recognised(poses, cfg=AssociationConfig()):
+        a = Associator(cfg)
+        for k, T in enumerate(poses):
+            a.add_frame(k + 1, K, T, SIZE, np.zeros(0, np.int64), np.zeros((0, 4)))
+        return a
+    # 56 deg field of view (fx 300 at 320 px): 20 deg per frame x confirm_window 10 > 2 x 56; 5 deg is video.
+    fast, slow = recognised(_turning_camera(20.0)), recognised(_turning_camera(5.0))
+    assert fast.keyframe_input and fast.cfg.confirm_views == KEYFRAME_SETTINGS['confirm_views']
+    assert not slow.keyframe_input and slow.cfg.confirm_views == 0
+    assert not recognised(_turning_camera(20.0)[:20]).keyframe_input        # decided after 2 x confirm_window
+    assert not recognised(_turning_camera(20.0), AssociationConfig(auto_keyframes=False)).keyframe_input
