@@ -6,7 +6,9 @@ A map directory holds `objects.json` and `meshes/<id>_<class>.ply` (world frame)
 objects.json has (id, class, 4x4 object-to-world pose, scale, box, shape code, views, stage, stage reason,
 timings, mesh) plus what the optimiser needs to continue: the COCO category, the shape node's fused code
 and view count the estimate was made from (`fused_code`, `fused_views`) and the association's box
-(`track`). With several optimiser workers each writes its own map in `DIR/worker_<k>/`; loading reads
+(`track`). The objects.json of a `frodo run --out` folder loads as well (category from the class name, no
+fused code or track), so a run can go on from another run's output. With several optimiser workers each
+writes its own map in `DIR/worker_<k>/`; loading reads
 `DIR` and every `DIR/worker_*/`, keeping the objects the loading worker owns, so a map can be resumed with
 another number of workers.
 
@@ -27,7 +29,7 @@ from typing import Any, Callable, Iterable
 import numpy as np
 import trimesh
 
-from frodo_common.categories import category_by_id
+from frodo_common.categories import category_by_id, category_by_name
 from frodo_optim.core import ObjectEstimate
 from frodo_optim.states import STAGE_REASONS, STAGES
 
@@ -171,7 +173,9 @@ def _map_object(record: dict, directory: Path) -> MapObject:
         raise ValueError(f'mesh {mesh_path} unreadable ({type(err).__name__}: {err})') from err
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0 or not np.isfinite(mesh.vertices).all():
         raise ValueError(f'mesh {mesh_path} has no finite surface')
-    estimate = ObjectEstimate(oid, str(record['class']), int(record['category']),
+    category = record.get('category')   # absent in a `frodo run` objects.json: from the class name
+    estimate = ObjectEstimate(oid, str(record['class']),
+                              int(category) if category is not None else category_by_name(record['class']).coco_id,
                               _vector(record, 'code').astype(np.float32), pose, scale, _box(record['box']),
                               int(record['num_views']), stage, mesh,
                               {str(k): float(v) for k, v in (record.get('timings') or {}).items()}, reason_index)
@@ -193,14 +197,13 @@ def load_map(directory: str | os.PathLike) -> tuple[list[MapObject], list[str]]:
         raise ObjectMapError(f'{path}: no object map there') from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
         raise ObjectMapError(f'{path}: not a readable object map, truncated or corrupt ({err})') from None
-    if not isinstance(document, dict) or document.get('format') != FORMAT:
-        raise ObjectMapError(f'{path}: not an object map (format {FORMAT!r} expected; a `frodo run` objects.json '
-                             'lacks what the optimiser needs to continue)')
-    if document.get('version') != VERSION:
+    if not isinstance(document, dict) or not isinstance(document.get('objects'), list):
+        raise ObjectMapError(f'{path}: not an object map (no "objects" list)')
+    if document.get('format', FORMAT) != FORMAT:   # no format: a `frodo run` objects.json
+        raise ObjectMapError(f'{path}: format {document.get("format")!r}, not an object map ({FORMAT!r})')
+    if 'format' in document and document.get('version') != VERSION:
         raise ObjectMapError(f'{path}: object map version {document.get("version")!r}, this code reads {VERSION}')
-    records = document.get('objects')
-    if not isinstance(records, list):
-        raise ObjectMapError(f'{path}: "objects" is not a list')
+    records = document['objects']
     objects, problems = [], []
     for i, record in enumerate(records):
         try:

@@ -71,14 +71,29 @@ def test_truncated_or_corrupt_maps_are_named_and_give_nothing(tmp_path):
     (tmp_path / MAP_FILE).write_bytes(b'\xff\xfe\x00garbage')
     with pytest.raises(ObjectMapError, match='truncated or corrupt'):
         load_map(tmp_path)
-    (tmp_path / MAP_FILE).write_text(json.dumps({'frame_id': 'world', 'objects': []}))   # a run's objects.json
+    (tmp_path / MAP_FILE).write_text(json.dumps({'frame_id': 'world', 'objects': {}}))
     with pytest.raises(ObjectMapError, match='not an object map'):
+        load_map(tmp_path)
+    (tmp_path / MAP_FILE).write_text(json.dumps({'format': 'other', 'objects': []}))
+    with pytest.raises(ObjectMapError, match="format 'other'"):
         load_map(tmp_path)
     with pytest.raises(ObjectMapError, match='no object map there'):
         load_map(tmp_path / 'missing')
     objects, problems = load_maps(tmp_path)          # what the node calls: no exception, a message, empty
     assert objects == {} and 'not an object map' in problems[0]
     assert load_maps(tmp_path / 'missing') == ({}, [])
+
+
+def test_a_frodo_run_output_folder_loads_too(tmp_path):
+    MapWriter(tmp_path).save([_object(3), _object(4)])
+    document = json.loads((tmp_path / MAP_FILE).read_text())
+    run_fields = ('id', 'class', 'pose', 'scale', 'box', 'code', 'num_views', 'stage', 'stage_reason', 'timings',
+                  'mesh', 'mesh_faces')        # what `frodo run --out` writes (frodo_bringup.outputs)
+    run_document = {'frame_id': 'world', 'objects': [{k: r[k] for k in run_fields} for r in document['objects']]}
+    (tmp_path / MAP_FILE).write_text(json.dumps(run_document))
+    objects, problems = load_map(tmp_path)
+    assert problems == [] and [(o.estimate.object_id, o.estimate.category) for o in objects] == [(3, 67), (4, 62)]
+    assert objects[0].fused_code is None and objects[0].track is None
 
 
 def test_a_bad_record_or_mesh_skips_only_that_object(tmp_path):
