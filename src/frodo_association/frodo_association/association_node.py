@@ -229,6 +229,7 @@ class AssociationNode(FrodoNode):
         fmt = lambda d, f: f'{f(d):.2f}' if d else 'n/a'       # noqa: E731
         return {'objects': len(self.associator.confirmed_tracks()), 'clusters': len(self.associator.tracks),
                 'detections': len(self.associator.rows), 'frames_cached': len(self.cache),
+                'keyframe_input': self.associator.keyframe_input,
                 'frames_unmatched': self.cache.evicted_incomplete,
                 'association_ms_mean': fmt(lat, np.mean), 'association_ms_max': fmt(lat, np.max),
                 'refine_ms_mean': fmt(self.refine_ms, np.mean), 'refine_ms_max': fmt(self.refine_ms, np.max),
