@@ -33,7 +33,8 @@ def soft_l1_cost(r: np.ndarray, f_scale: float) -> np.ndarray:
 def soft_l1_least_squares(fun: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], p0: np.ndarray,
                           lower: np.ndarray, upper: np.ndarray, f_scale: float, max_evals: int = 60,
                           ftol: float = 1e-8, xtol: float = 1e-8,
-                          damping_factors: tuple[float, ...] = (0.1, 1.0, 10.0)) -> tuple[np.ndarray, np.ndarray]:
+                          damping_factors: tuple[float, ...] = (0.1, 1.0, 10.0), initial_damping: float = 1.0
+                          ) -> tuple[np.ndarray, np.ndarray]:
     """Minimise the soft-L1 cost of fun's residuals from S starts at once (projected Levenberg-Marquardt).
 
     fun: p (N, P) -> (residuals (N, M), Jacobian (N, M, P)); p0: (S, P) starts (inside the bounds);
@@ -47,7 +48,7 @@ def soft_l1_least_squares(fun: Callable[[np.ndarray], tuple[np.ndarray, np.ndarr
     n_try = len(factors)
     r, J = fun(p)
     cost = soft_l1_cost(r, f_scale)
-    mu = np.full(n_start, 1e-3)
+    mu = np.full(n_start, initial_damping)
     active = np.ones(n_start, dtype=bool)
     eye = np.eye(n_par)
     first = np.arange(n_start)
@@ -55,8 +56,9 @@ def soft_l1_least_squares(fun: Callable[[np.ndarray], tuple[np.ndarray, np.ndarr
         if not active.any():
             break
         z1 = 1.0 + (r / f_scale) ** 2                                  # (S, M)
-        g = np.einsum('smp,sm->sp', J, r / np.sqrt(z1))                # (S, P) gradient of the cost
-        H = np.einsum('smp,smq->spq', J * (z1 ** -1.5)[..., None], J)  # (S, P, P) Gauss-Newton, loss curvature
+        Jt = J.transpose(0, 2, 1)
+        g = (Jt @ (r / np.sqrt(z1))[..., None])[..., 0]                # (S, P) gradient of the cost
+        H = Jt @ (J * (z1 ** -1.5)[..., None])                         # (S, P, P) Gauss-Newton, loss curvature
         # Variables at a bound that the descent direction would push through are held for this step.
         held = ((p <= lower) & (g > 0)) | ((p >= upper) & (g < 0))
         free = (~held).astype(np.float64)
