@@ -121,6 +121,7 @@ class OptimNode(FrodoNode):
         self.estimates: dict[int, ObjectEstimate] = {}
         self.mesh_cache: dict[int, tuple[np.ndarray, object]] = {}  # id -> (code, normalised mesh)
         self.published_ids: set[tuple[str, int]] = set()
+        self.mesh_markers: dict[int, tuple[ObjectEstimate, Marker]] = {}   # id -> (estimate, its mesh marker)
         self.retracted: set[tuple[str, int]] = set()                # published once, now gone: DELETE every time
         self.resumed: dict[int, int] = {}                           # id -> views of its saved estimate (not re-run yet)
         self.pending: set[int] = set()
@@ -494,6 +495,20 @@ class OptimNode(FrodoNode):
         self._publish()
 
     # ------------------------------------------------------------ outputs
+    def _mesh_marker(self, est: ObjectEstimate, stamp_ns: int, frame: str, rgba) -> Marker:
+        """The TRIANGLE_LIST marker of an estimate, built once per estimate and re-stamped afterwards: a map of
+        n objects is republished after every stage of every object, and building all n markers each time made
+        ~40k Point messages per object; they set off full garbage collections that held the GIL for up to a
+        second (optim_node's /diagnostics came 1.4-2.4 s apart under load)."""
+        cached = self.mesh_markers.get(est.object_id)
+        if cached is not None and cached[0] is est:   # same estimate: same mesh, class and colour
+            cached[1].header.stamp = conv.ns_to_stamp(stamp_ns)
+            return cached[1]
+        marker = conv.mesh_to_marker(est.mesh_world.vertices, est.mesh_world.faces, est.class_name, est.object_id,
+                                     stamp_ns, frame, rgba)
+        self.mesh_markers[est.object_id] = (est, marker)
+        return marker
+
     def _publish(self) -> None:
         now = self.get_clock().now().nanoseconds
         frame = self.params['world_frame']
@@ -510,8 +525,7 @@ class OptimNode(FrodoNode):
         states = np.zeros(len(estimates), dtype=STATES_DTYPE)
         for i, est in enumerate(estimates):
             rgba = CLASS_COLOURS.get(est.class_name, (0.7, 0.7, 0.7, 1.0))
-            objects.markers.append(conv.mesh_to_marker(est.mesh_world.vertices, est.mesh_world.faces,
-                                                       est.class_name, est.object_id, now, frame, rgba))
+            objects.markers.append(self._mesh_marker(est, now, frame, rgba))
             center, size, yaw = est.box
             boxes.markers.append(conv.box_to_marker(center, size, yaw, est.class_name, est.object_id, now, frame,
                                                     rgba[:3] + (0.35,)))
@@ -519,6 +533,7 @@ class OptimNode(FrodoNode):
                          est.T_world_object.ravel(), np.r_[center, size, yaw], est.code,
                          sum(est.timings.values()), est.stage_reason)
         self.published_ids = current
+        self.mesh_markers = {oid: entry for oid, entry in self.mesh_markers.items() if oid in self.estimates}
         self.objects_pub.publish(objects)
         self.boxes_pub.publish(boxes)
         self.states_pub.publish(conv.table_to_cloud(states, now, frame))
