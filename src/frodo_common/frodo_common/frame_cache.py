@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import time
-from collections import Counter, OrderedDict
+from collections import Counter, OrderedDict, deque
 from dataclasses import dataclass, field
 from typing import Any, Iterable
 
@@ -18,6 +18,43 @@ class Frame:
     def has(self, names: Iterable[str]) -> bool:
         """True when every named part is present."""
         return all(n in self.parts for n in names)
+
+
+class CompletedStamps:
+    """The stamps of completed frames, bounded: the newest `capacity` are held; an older stamp counts as
+    completed when it is not newer than the newest one forgotten (`watermark`).
+
+    Why: nodes pop a frame from the cache as soon as it is processed but keep its stamp marked complete (a
+    re-send for it is then recognised, and a late part does not start a frame again); one stamp per frame
+    for ever grew without bound on long runs. Stamps more than `capacity` frames old are answered by the
+    watermark: a part that old is too late to complete a frame anyway.
+    """
+
+    def __init__(self, capacity: int):
+        self.capacity = max(1, int(capacity))
+        self._stamps: set[int] = set()
+        self._order: deque[int] = deque()
+        self.watermark: int | None = None
+
+    def add(self, stamp: int) -> None:
+        if stamp in self._stamps:
+            return
+        self._stamps.add(stamp)
+        self._order.append(stamp)
+        while len(self._order) > self.capacity:
+            old = self._order.popleft()
+            if old in self._stamps:
+                self._stamps.discard(old)
+                self.watermark = old if self.watermark is None else max(self.watermark, old)
+
+    def discard(self, stamp: int) -> None:
+        self._stamps.discard(stamp)   # its place in _order goes when it reaches the front
+
+    def __contains__(self, stamp: int) -> bool:
+        return stamp in self._stamps or (self.watermark is not None and stamp <= self.watermark)
+
+    def __len__(self) -> int:
+        return len(self._stamps)
 
 
 class FrameCache:
@@ -37,13 +74,14 @@ class FrameCache:
     """
 
     def __init__(self, required: Iterable[str], capacity: int = 400, stale_after_ns: int = 2_000_000_000,
-                 stale_after_s: float = 5.0):
+                 stale_after_s: float = 5.0, completed_capacity: int | None = None):
         self.required = tuple(required)
         self.capacity = int(capacity)
         self.stale_after_ns = int(stale_after_ns)
         self.stale_after_s = float(stale_after_s)
         self.frames: OrderedDict[int, Frame] = OrderedDict()
-        self.completed: set[int] = set()
+        # Completed stamps remembered (default 10 x capacity; `CompletedStamps`): bounded on long runs.
+        self.completed = CompletedStamps(completed_capacity if completed_capacity is not None else 10 * self.capacity)
         self.evicted_incomplete = 0
         self.missing_parts: Counter[str] = Counter()
         self.duplicates = 0
