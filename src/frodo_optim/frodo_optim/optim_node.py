@@ -189,6 +189,7 @@ class OptimNode(FrodoNode):
                     self.tracks.clear()
                 elif m.action == Marker.DELETE:
                     self.tracks.pop(m.id, None)
+                    self.resumed.pop(m.id, None)   # the association dropped it: a resumed object goes too
                     self.pending.add(m.id)
                 elif m.type == Marker.CUBE:
                     try:  # one bad box must not drop the others of the array
@@ -362,9 +363,9 @@ class OptimNode(FrodoNode):
 
     def _reconstruct(self, oid: int, track, codes) -> None:
         if track is None or codes is None or codes[1] < int(self.params['min_views']):
-            if track is None and oid in self.estimates:
+            # A resumed object stays until the association deletes its track: its fused code may come first.
+            if track is None and oid in self.estimates and oid not in self.resumed:
                 del self.estimates[oid]
-                self.resumed.pop(oid, None)
                 self._publish()
             return
         if oid in self.resumed and self.params['sparse_enabled']:

@@ -61,7 +61,7 @@ class _Probe:
             else:
                 self.merged[m.id] = m
 
-    def publish(self, ids, views: int = 3, deleted=()) -> None:
+    def publish(self, ids, views: int = 3, deleted=(), tracks: bool = True) -> None:
         table = np.zeros(len(ids), dtype=OBJECT_CODES_DTYPE)
         markers = MarkerArray(markers=[conv.delete_marker('chair', oid, STAMP, 'world') for oid in deleted])
         for i, oid in enumerate(ids):
@@ -69,7 +69,8 @@ class _Probe:
             markers.markers.append(conv.box_to_marker(np.array([1.5 * oid, 0.0, 0.4]), np.array([0.5, 0.5, 0.8]),
                                                       0.1 * oid, 'chair', oid, STAMP, 'world'))
         self.codes.publish(conv.table_to_cloud(table, STAMP, 'world'))
-        self.tracks.publish(markers)
+        if tracks:
+            self.tracks.publish(markers)
 
     def status(self, name: str) -> dict[str, str]:
         return latest_status(self.diags, name)
@@ -149,7 +150,12 @@ def test_a_saved_map_is_republished_at_once_by_a_resuming_worker_and_refined_on_
         assert probe.spin(lambda: probe.status('optim_node').get('objects_resumed') == '2', 10)
         for oid, vertices in before.items():
             assert np.allclose(conv.marker_to_mesh(probe.merged[oid])[0], vertices, atol=1e-5)
-        # The latched inputs arrive again, but no views yet: the saved estimates stay (no sparse pass without views)
+        # The latched inputs arrive again, the fused codes first (no track yet: the objects stay), but no views
+        # yet: the saved estimates stay (no sparse pass without views)
+        probe.publish([1, 2], tracks=False)
+        assert probe.spin(lambda: int(probe.status('optim_node').get('object_codes_received', 0)) >= 1
+                          and _idle(probe, 'optim_node'))
+        assert sorted(second.estimates) == [1, 2] and sorted(probe.merged) == [1, 2]
         probe.publish([1, 2])
         assert probe.spin(lambda: int(probe.status('optim_node').get('resumed_waiting_for_views', 0)) >= 2
                           and _idle(probe, 'optim_node'))
