@@ -140,6 +140,8 @@ def test_two_workers_on_the_demo_bag_share_the_objects_and_a_killed_one_resumes_
         old_pid = launcher.pids['optim_node_1']
         os.kill(old_pid, signal.SIGKILL)
         assert wait_until(lambda: launcher.pids['optim_node_1'] != old_pid and 'optim_node_1' in monitor.up(), 90), lines
+        new_pid = str(launcher.pids['optim_node_1'])
+        assert wait_until(lambda: collector._reports['optim_node_1'][-1][1].get('pid') == new_pid, 10)
         latest = collector._reports['optim_node_1'][-1][1]
         # the restarted worker has its objects back before any new frame (the bag has ended)
         assert latest['objects_resumed'] == str(len(saved[1])) and latest['objects'] == str(len(saved[1])), latest
