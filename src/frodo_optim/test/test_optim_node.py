@@ -14,48 +14,18 @@ from visualization_msgs.msg import MarkerArray
 from frodo_association.core import ASSOCIATION_DTYPE
 from frodo_common import conversions as conv
 from frodo_common import topics
-from frodo_common.geometry import look_at
 from frodo_common.testing import latest_status, spin_until
-from frodo_datasets.render import Material, Renderer, RenderObject, intrinsics
 from frodo_optim.optim_node import OptimNode
-from frodo_optim.sparse import pose_matrix
 from frodo_optim.states import OBJECT_STATES, STAGE_REASONS, STAGES, states_to_records
-from frodo_shape.prior import ShapePrior
 from frodo_shape.shape_node import OBJECT_CODES_DTYPE
 
-W, H = 160, 120
 CHAIR = 62
 
 
-def _scene():
-    """Two chairs of the prior side by side, 6 textured views of both: per frame (stamp, rgb, labels, T_wc)."""
-    prior = ShapePrior.load('furniture', device='cpu')
-    chairs = [i for i, c in enumerate(prior.training_classes) if c == 'chair']
-    objects, boxes, codes = [], {}, {}
-    for oid, (index, x) in enumerate(((chairs[1], -0.5), (chairs[4], 0.6)), start=1):
-        code = prior.training_codes[index].numpy()
-        mesh = prior.mesh(code, resolution=40)
-        s = 0.45
-        T = pose_matrix(0.3 * oid, [x, 0.0, -s * mesh.bounds[0, 2]], s)
-        world = mesh.copy().apply_transform(T)
-        objects.append(RenderObject(world, Material(color=(0.2 + 0.3 * oid, 0.4, 0.3), kind='checker', scale=6), oid))
-        lo, hi = world.bounds
-        boxes[oid] = ((lo + hi) / 2, hi - lo, 0.3 * oid)
-        codes[oid] = code
-    renderer = Renderer(objects)
-    K = intrinsics(W, H, 70.0)
-    frames = []
-    for k in range(6):
-        a = -np.pi / 2 + (k - 2.5) * 0.25
-        Twc = look_at([3.0 * np.cos(a), 3.0 * np.sin(a), 1.2], [0.0, 0.0, 0.4])
-        out = renderer.render(K, Twc, W, H, shadows=False)
-        frames.append((1_000_000_000 + 100_000_000 * k, out.rgb, out.labels.astype(np.uint16), Twc))
-    return K, frames, boxes, codes
-
-
-def test_optimiser_serves_callbacks_while_optimising_and_reports_stages():
+def test_optimiser_serves_callbacks_while_optimising_and_reports_stages(two_chairs):
     torch.manual_seed(0)
-    K, frames, boxes, codes = _scene()
+    K, frames, boxes, codes = two_chairs
+    H, W = frames[0][2].shape
     rclpy.init()
     executor = SingleThreadedExecutor()
     try:

@@ -1,18 +1,22 @@
 """optim_node workers and the saved object map in a real rclpy graph (issue 12): two workers split the objects by
 id and their messages merge into one map with every object once (no DELETEALL, deletes only of their own ids);
-a worker saving its map and a new one resuming from it republish the objects at once, and a map that cannot
-be read is reported while the worker starts empty."""
+a worker saving its map and a new one resuming from it republish the objects at once, keep them until enough
+new views arrive and then refine them again, and a map that cannot be read is reported while the worker
+starts empty."""
 import json
 
 import numpy as np
 import rclpy
+import torch
 from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
-from sensor_msgs.msg import PointCloud2
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
+from frodo_association.core import ASSOCIATION_DTYPE
 from frodo_common import conversions as conv
 from frodo_common import topics
 from frodo_common.testing import latest_status, spin_until
@@ -186,6 +190,68 @@ def test_a_saved_map_is_republished_at_once_by_a_resuming_worker_and_refined_on_
         executor.remove_node(fourth)
         fourth.on_shutdown()
         fourth.destroy_node()
+    finally:
+        executor.shutdown()
+        rclpy.shutdown()
+
+
+def test_a_resumed_object_is_refined_again_once_enough_new_views_arrive(tmp_path, two_chairs):
+    torch.manual_seed(0)
+    K, frames, boxes, codes = two_chairs
+    H, W = frames[0][2].shape
+    rclpy.init()
+    executor = SingleThreadedExecutor()
+    try:
+        probe = _Probe(executor)
+        frame_pubs = {name: probe.node.create_publisher(t, topic, topics.FRAME_QOS) for name, t, topic in (
+            ('det', Image, topics.DETECTIONS), ('assoc', PointCloud2, topics.ASSOCIATIONS),
+            ('pose', PoseStamped, topics.POSE), ('info', CameraInfo, topics.CAMERA_INFO))}
+
+        def publish_objects(views):
+            table = np.zeros(2, dtype=OBJECT_CODES_DTYPE)
+            for i, oid in enumerate((1, 2)):
+                table[i] = (oid, CHAIR, views, codes[oid])
+            probe.codes.publish(conv.table_to_cloud(table, STAMP, 'world'))
+            probe.tracks.publish(MarkerArray(markers=[conv.box_to_marker(*boxes[oid], 'chair', oid, STAMP, 'world')
+                                                      for oid in (1, 2)]))
+
+        # The saved map: both chairs placed at the fused stage from 3 views.
+        first = _optimiser('optim_node', Parameter('map_dir', value=str(tmp_path)))
+        executor.add_node(first)
+        assert probe.spin(lambda: probe.tracks.get_subscription_count() == 1)
+        publish_objects(views=3)
+        assert probe.spin(lambda: sorted(first.estimates) == [1, 2] and _idle(probe, 'optim_node'))
+        executor.remove_node(first)
+        first.on_shutdown()
+        first.destroy_node()
+
+        second = _optimiser('optim_node', Parameter('resume', value=str(tmp_path)), Parameter('sparse_enabled', value=True),
+                            Parameter('dense_enabled', value=False), Parameter('sparse_iterations', value=5),
+                            Parameter('sparse_yaw_candidates', value=8))
+        executor.add_node(second)
+        assert probe.spin(lambda: frame_pubs['assoc'].get_subscription_count() == 1 and sorted(second.estimates) == [1, 2])
+        publish_objects(views=2)                      # no views yet: the saved estimates stay
+        assert probe.spin(lambda: int(probe.status('optim_node').get('resumed_waiting_for_views', 0)) >= 2
+                          and _idle(probe, 'optim_node'))
+        frame_pubs['info'].publish(conv.make_camera_info(K, W, H, frames[0][0], 'camera'))
+        for stamp, _, labels, Twc in frames:      # six new views of each chair
+            rows = np.zeros(2, dtype=ASSOCIATION_DTYPE)
+            for i, oid in enumerate((1, 2)):
+                ys, xs = np.nonzero(labels == oid)
+                rows[i] = (*boxes[oid][0], oid, oid, 1, (xs.min(), ys.min(), xs.max() + 1, ys.max() + 1))
+            frame_pubs['pose'].publish(conv.make_pose_stamped(Twc, stamp, 'world'))
+            frame_pubs['det'].publish(conv.numpy_to_image(labels, '16UC1', stamp, 'camera'))
+            frame_pubs['assoc'].publish(conv.table_to_cloud(rows, stamp, 'world'))
+            executor.spin_once(timeout_sec=0.01)
+        assert probe.spin(lambda: int(probe.status('optim_node').get('views_stored', 0)) >= 12)
+        publish_objects(views=6)                      # the shape node's codes grow with the views: a new pass
+        assert probe.spin(lambda: _idle(probe, 'optim_node') and all(e.stage == 'sparse' for e in second.estimates.values()),
+                          120), {k: v for k, v in probe.status('optim_node').items() if 'sparse' in k or k == 'state'}
+        assert probe.status('optim_node')['resumed_unrefined'] == '0'
+        assert {STAGES[s] for s in conv.cloud_to_table(probe.states[-1])['stage']} == {'sparse'}
+        executor.remove_node(second)
+        second.on_shutdown()
+        second.destroy_node()
     finally:
         executor.shutdown()
         rclpy.shutdown()
