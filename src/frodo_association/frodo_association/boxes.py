@@ -124,16 +124,18 @@ def _box_projection(p: np.ndarray, R: np.ndarray, t: np.ndarray, f: np.ndarray, 
     center = np.empty((n_s, 3))
     center[:, :2] = p[:, :2]
     center[:, 2] = floor_height + size[:, 2] / 2 if on_floor else p[:, 2]
-    # Corners along the last axis throughout: the min / max / arg reductions run over contiguous memory.
+    # Corners along the last axis throughout: the arg reductions run over contiguous memory.
     local = _BOX_SIGNS.T * size[:, :, None]                             # (S, 3, 8) corner offsets, box frame
     pc = R @ (rot @ local + center[:, :, None])[:, None] + t[:, :, None]   # (S, V, 3, 8) camera frame
     z = np.maximum(pc[:, :, 2], 0.05)                                   # (S, V, 8)
     xy = pc[:, :, :2] / z[:, :, None]                                   # (S, V, 2, 8)
     uv = xy * f[:, :, None] + c[:, :, None]
-    boxes = np.concatenate([uv.min(axis=3), uv.max(axis=3)], axis=2)   # (S, V, 4)
+    corner = np.concatenate([uv.argmin(axis=3), uv.argmax(axis=3)], axis=2)   # (S, V, 4) extreme corner per edge
+    s_idx = np.arange(n_s)[:, None, None]
+    v_idx = np.arange(n_v)[None, :, None]
+    boxes = uv[s_idx, v_idx, _EDGE_AXIS, corner]                        # (S, V, 4)
     if not with_jacobian:
         return boxes
-    corner = np.concatenate([uv.argmin(axis=3), uv.argmax(axis=3)], axis=2)   # (S, V, 4) extreme corner per edge
     n_c = 2 if on_floor else 3
     dX = np.zeros((n_s, 3, 8, n_p))                                     # d world corner / d p
     dX[:, np.arange(n_c), :, np.arange(n_c)] = 1.0
@@ -143,10 +145,10 @@ def _box_projection(p: np.ndarray, R: np.ndarray, t: np.ndarray, f: np.ndarray, 
     dX[:, 0, :, -1] = -sin[:, None] * local[:, 0] - cos[:, None] * local[:, 1]
     dX[:, 1, :, -1] = cos[:, None] * local[:, 0] - sin[:, None] * local[:, 1]
     dpc = (R @ dX.reshape(n_s, 1, 3, 8 * n_p)).reshape(n_s, n_v, 3, 8, n_p)   # (S, V, 3, 8, P) camera frame
-    duv = (dpc[:, :, :2] - xy[..., None] * dpc[:, :, 2:3]) * (f[:, :, None] / z[:, :, None])[..., None]
-    s_idx = np.arange(n_s)[:, None, None]
-    v_idx = np.arange(n_v)[None, :, None]
-    return boxes, duv[s_idx, v_idx, _EDGE_AXIS, corner]                 # (S, V, 4, P)
+    # Derivatives of the 4 extreme corners only (each edge follows its corner: u = f x / z + c).
+    jac = (dpc[s_idx, v_idx, _EDGE_AXIS, corner] - xy[s_idx, v_idx, _EDGE_AXIS, corner][..., None]
+           * dpc[s_idx, v_idx, 2, corner]) * (f[:, _EDGE_AXIS] / z[s_idx, v_idx, corner])[..., None]
+    return boxes, jac                                                   # (S, V, 4), (S, V, 4, P)
 
 
 def fit_box(K: np.ndarray, T_camera_world: np.ndarray, boxes: np.ndarray, edge_valid: np.ndarray,
