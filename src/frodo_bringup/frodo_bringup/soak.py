@@ -6,7 +6,8 @@ demo bag itself), played by `run.run_bag` at `rate` times real time. A probe in 
 - each node's resident memory (VmRSS of its process, from the pid in its /diagnostics reports; Linux /proc),
   sampled every `sample_period` s against the frames played so far;
 - its backlog: frames played minus images the node has taken (its /diagnostics counter), i.e. what waits
-  in its queues; and the size figures the nodes report (frames cached, detections, views held, ...);
+  in its queues or was dropped from them (KEEP_LAST depth 100: a queue never grows beyond that, a node
+  that cannot keep up loses frames); and the size figures the nodes report (frames cached, detections, ...);
 - per-frame latency: from the arrival of a frame's /camera/pose at the probe to the arrival of its
   /frodo/associations (detection + association of that frame, queueing included);
 - the intervals between each node's /diagnostics reports (header stamps; contract: at least 1 Hz; gaps over
@@ -228,7 +229,7 @@ def plot(doc: dict[str, Any], index: np.ndarray, latency_ms: np.ndarray, path: P
     for name in sorted({n for s in samples for n in s['backlog']}):
         rows = [(s['frames'], s['backlog'][name]) for s in samples if name in s['backlog']]
         axes[2].plot(*np.array(rows).T, label=name, lw=1)
-    axes[2].set(xlabel='frames played', ylabel='backlog (frames)')
+    axes[2].set(xlabel='frames played', ylabel='played - taken (frames)')
     axes[2].legend(fontsize=7, ncol=2)
     fig.tight_layout()
     fig.savefig(path, dpi=70)
