@@ -5,6 +5,7 @@ and in the real graph on the demo bag two workers each reconstruct their share, 
 object once, and a worker killed with SIGKILL comes back with its saved objects at once."""
 from __future__ import annotations
 
+import ast
 import io
 import json
 import os
@@ -19,7 +20,7 @@ from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
 from frodo_bringup.graph import (NODES, GraphError, is_optimiser, optimiser_workers, ros_parameter_arguments,
-                                 with_optimiser_parameters)
+                                 share_file, with_optimiser_parameters)
 from frodo_bringup.launcher import Launcher
 from frodo_bringup.player import Player
 from frodo_bringup.readiness import GraphMonitor
@@ -61,6 +62,18 @@ def test_workers_get_unique_names_and_the_optimiser_parameters(tmp_path):
     bad.write_text('optim_node: [unclosed\n')
     with pytest.raises(GraphError, match='bad.yaml'):
         Launcher(nodes, [bad])
+
+
+def test_launch_file_takes_optim_workers():
+    """ROS 2 launch is not installed here, so only its structure is checked: the argument is declared and the
+    optimiser nodes come from one function that names the workers like `optimiser_workers`."""
+    tree = ast.parse(share_file('launch/frodo.launch.py').read_text())
+    declared = [node.args[0].value for node in ast.walk(tree) if isinstance(node, ast.Call)
+                and getattr(node.func, 'id', '') == 'DeclareLaunchArgument']
+    assert declared == ['params_file', 'viewer', 'optim_workers']
+    function = next(n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == 'optimiser_nodes')
+    assert "f'{executable}_{k}'" in ast.unparse(function) and "'worker_index': k" in ast.unparse(function)
+    assert [n.name for n in optimiser_workers(NODES, 2)][-2:] == ['optim_node_0', 'optim_node_1']
 
 
 def test_the_run_collector_merges_the_workers_shares_by_object_id():
