@@ -68,10 +68,15 @@ def soft_l1_least_squares(fun: Callable[[np.ndarray], tuple[np.ndarray, np.ndarr
             + (mus[..., None] * diag[:, None, :] + (1.0 - free)[:, None, :])[..., None] * eye
         rhs = np.broadcast_to((g * free)[:, None, :, None], (n_start, n_try, n_par, 1))
         trial = np.clip(p[:, None] - np.linalg.solve(A, rhs)[..., 0], lower, upper)   # (S, T, P)
-        r_t, J_t = fun(trial.reshape(-1, n_par))
+        # Only the starts still running are evaluated (a converged warm start stops costing anything).
+        tried = (np.nonzero(active)[0][:, None] * n_try + np.arange(n_try)).ravel()
+        r_a, J_a = fun(trial.reshape(-1, n_par)[tried])
+        r_t, J_t = np.zeros((n_start * n_try,) + r_a.shape[1:]), np.zeros((n_start * n_try,) + J_a.shape[1:])
+        r_t[tried], J_t[tried] = r_a, J_a
+        cost_t = np.full(n_start * n_try, np.inf)
         with np.errstate(over='ignore', invalid='ignore'):               # a wild trial step is just rejected
-            cost_t = soft_l1_cost(r_t, f_scale).reshape(n_start, n_try)
-        cost_t = np.where(np.isfinite(cost_t), cost_t, np.inf)
+            cost_t[tried] = soft_l1_cost(r_a, f_scale)
+        cost_t = np.where(np.isfinite(cost_t), cost_t, np.inf).reshape(n_start, n_try)
         best = np.argmin(cost_t, axis=1)
         pick = first * n_try + best
         cost_b = cost_t[first, best]
