@@ -13,20 +13,24 @@ class Category:
     size_range: (min, max) plausible largest metric extent of an object of this class in metres.
         The association stage uses it to cut the ray through a box centre to a 3D segment
         (paper Sec. 4.1: "knowledge of the object class sets reasonable bounds on the object scale").
+    height_range: (min, max) plausible metric height in metres (floor to top). The optimiser's class
+        height prior (frodo_optim.support, beyond the paper) keeps reconstructions inside it.
     """
 
     coco_id: int
     name: str
     size_range: tuple[float, float]
+    height_range: tuple[float, float] = (0.0, float('inf'))
 
 
 # Size ranges cover the procedural library and common real furniture (ScanNet/Redwood chairs
-# are 0.4-1.2 m tall; dining tables 0.6-2.4 m long).
+# are 0.4-1.2 m tall; dining tables 0.6-2.4 m long). Heights: chairs from low stools to office chairs
+# with head rests (procedural library up to 1.28 m), tables from coffee tables to standing desks.
 CATEGORIES: tuple[Category, ...] = (
-    Category(62, 'chair', (0.35, 1.3)),
-    Category(63, 'couch', (0.8, 2.6)),
-    Category(65, 'bed', (1.2, 2.4)),
-    Category(67, 'dining table', (0.5, 2.6)),
+    Category(62, 'chair', (0.35, 1.3), (0.4, 1.35)),
+    Category(63, 'couch', (0.8, 2.6), (0.5, 1.2)),
+    Category(65, 'bed', (1.2, 2.4), (0.25, 1.5)),
+    Category(67, 'dining table', (0.5, 2.6), (0.3, 1.15)),
 )
 
 BY_COCO_ID: dict[int, Category] = {c.coco_id: c for c in CATEGORIES}

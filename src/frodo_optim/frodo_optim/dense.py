@@ -21,7 +21,11 @@ Per iteration:
    - Eg, geometric: SLAM landmarks near the object, |SDF| at the landmark in metres, truncated;
    - Ed, registered depth (CONTRACT v1.1, beyond the paper): |SDF| at back-projected masked depth pixels,
      truncated;
-   - Er, code regulariser as in the sparse stage.
+   - Er, code regulariser as in the sparse stage;
+   - E_floor, E_size (beyond the paper, `support.py`): the object's lowest surface points on the floor and its
+     height in its class's range, on the proxy mesh's lowest and highest vertices moved by the implicit
+     rule (so code, rotation, translation and scale all feel them); only when a floor height / height range
+     is passed.
 3. gradients: pose through the ray/point coordinates; code through
    - the volume: dEs/dG at the grid samples (autograd through the trilinear reads), pushed through the
      decoder as one vector-Jacobian product on the band of grid points with non-zero gradient;
@@ -41,6 +45,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from frodo_optim import support
 from frodo_optim.photometric import LABEL_OBJECT, LABEL_UNKNOWN, DenseView, ViewBatch, photometric_energy
 from frodo_optim.sparse import code_statistics, select_views, slam_points_near
 from frodo_shape.meshing import grid_points, marching_cubes, sdf_grid
@@ -48,6 +53,7 @@ from frodo_shape.meshing import grid_points, marching_cubes, sdf_grid
 # Ray samples with |zeta f| below this carry the silhouette gradient; beyond it log-sigmoid is flat (its slope
 # is below 1e-5 on the outside; deep inside, H is saturated), so those samples enter as constants.
 ACTIVE_LOGIT = 12.0
+SUPPORT_VERTICES = 16   # lowest / highest proxy-mesh vertices that carry E_floor and E_size
 
 
 @dataclass
@@ -71,6 +77,9 @@ class DenseConfig:
     w_geometry: float = 0.5
     w_depth: float = 0.5
     w_code: float = 0.01
+    w_floor: float = 0.05              # E_floor (support.py); needs refine_dense(..., floor_height=h)
+    floor_tolerance: float = 0.05      # metres
+    w_height: float = 1.0              # E_size (support.py); needs refine_dense(..., height_range=(lo, hi))
     geometry_truncation: float = 0.1   # metres (Eg, Ed)
     photometric_neighbours: int = 2
     huber_delta: float = 0.1
@@ -258,14 +267,16 @@ def sdf_distance(prior, points_world: torch.Tensor, z: torch.Tensor, R, t, s, tr
 
 # ------------------------------------------------------------------ stage
 def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView], slam_points: np.ndarray | None = None,
-                 box=None, config: DenseConfig | None = None, should_stop=None) -> DenseResult:
+                 box=None, config: DenseConfig | None = None, should_stop=None, floor_height: float | None = None,
+                 height_range: tuple[float, float] | None = None) -> DenseResult:
     """Dense code + 7-DoF pose refinement of one object from its sparse estimate (paper Sec. 4.3).
 
     prior: `ShapePrior` (decoder.sdf, sdf_numpy, training_codes); code (C,), T_world_object (4, 4) similarity:
     the sparse result; views: `DenseView`s (at most config.max_views, spread evenly); slam_points (N, 3) world
     landmarks or None; box (centre, size, yaw) to select landmarks (None: all landmarks within the object's
     cube). should_stop: optional callable polled every iteration (a stopping node ends the stage at once,
-    keeping the best state so far). Never raises on bad input: returns the input with improved=False and a reason.
+    keeping the best state so far). floor_height (world z) / height_range (m): the support priors E_floor / E_size
+    (`support.py`, weights w_floor / w_height); None: off. Never raises on bad input: returns the input with improved=False and a reason.
     """
     cfg = config or DenseConfig()
     start = time.perf_counter()
@@ -306,6 +317,8 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
         if len(depth_t) > 2048:
             depth_t = depth_t[torch.randperm(len(depth_t), generator=gen)[:2048].to(dev)]
     mu, sigma = (x.to(dev) for x in code_statistics(prior.training_codes))
+    use_floor = floor_height is not None and math.isfinite(float(floor_height)) and cfg.w_floor > 0
+    use_height = height_range is not None and cfg.w_height > 0
     grid_xyz = torch.as_tensor(grid_points(Rg).reshape(-1, 3), device=dev)
     cell = 2.0 / (Rg - 1)
 
@@ -352,8 +365,20 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
         terms['depth'] = sdf_distance(prior, depth_t, z, R, t, s, cfg.geometry_truncation) if depth_t is not None \
             else z.new_zeros(())
         terms['code'] = (((z - mu) / sigma) ** 2).mean()
+        if use_floor or use_height:   # beyond the paper: the extreme vertices (in world z), moved by the implicit rule
+            all_verts = torch.as_tensor(mesh.vertices, dtype=torch.float32, device=dev)
+            with torch.no_grad():
+                order = torch.argsort((s * all_verts @ R.T + t)[:, 2])
+            k = min(len(order), SUPPORT_VERTICES)
+            ends = all_verts[torch.cat([order[:k], order[-k:]])]
+            x_ends, _ = implicit_surface_points(sdf_fn, ends, z)
+            world_ends = s * x_ends @ R.T + t
+            if use_floor:
+                terms['floor'] = support.floor_energy(world_ends[:k], floor_height, cfg.floor_tolerance)
+            if use_height:
+                terms['height'] = support.height_energy(world_ends, height_range)
         weights = {'silhouette': cfg.w_silhouette, 'photometric': cfg.w_photometric, 'geometry': cfg.w_geometry,
-                   'depth': cfg.w_depth, 'code': cfg.w_code}
+                   'depth': cfg.w_depth, 'code': cfg.w_code, 'floor': cfg.w_floor, 'height': cfg.w_height}
         total = sum(weights[k] * v for k, v in terms.items())
         with torch.no_grad():   # the check energy: same terms, silhouette on the fixed finest-level rays
             sil_check = terms['silhouette'] if rays is check_rays else dense_silhouette(

@@ -43,6 +43,7 @@ from frodo_optim.dense import DenseConfig, refine_dense
 from frodo_optim.object_map import MapObject, MapWriter, load_maps, map_dirs, worker_map_dir
 from frodo_optim.photometric import ViewBatch, dense_view_from_frame
 from frodo_optim.sparse import SparseConfig, ViewStore, refine, select_views, view_from_mask
+from frodo_optim import support
 from frodo_optim.states import OBJECT_STATES, STAGE_REASONS, STAGES, STATES_DTYPE
 from frodo_shape.prior import ShapePrior
 
@@ -66,12 +67,18 @@ PARAMS = (
     ParamSpec('sparse_w_geometry', 0.5, 'Weight of the SLAM-point energy Eg (truncated 3D chamfer); 0 disables.'),
     ParamSpec('sparse_w_code', 0.01, 'Weight of the code regulariser Er (squared code z-score w.r.t. training codes).'),
     ParamSpec('sparse_optimise_code', True, 'Optimise the shape code too (false: pose only).'),
-    ParamSpec('sparse_lr_code', 0.005, 'Adam step size of the shape code in the sparse stage.'),
+    ParamSpec('sparse_lr_code', 0.02, 'Adam step size of the shape code in the sparse stage.'),
     ParamSpec('sparse_w_photometric', 0.0, 'Weight of the sparse photometric energy Ep (Eq. 5, visibility-aware; '
               'needs dense_enabled for the colour crops); 0 disables.'),
-    ParamSpec('sparse_placement_search', False, 'Also start the sparse stage from placement hypotheses (placement.py: '
-              'ray-crossing centres, silhouette scales) when the association box may be badly wrong. Off by default: '
-              'it recovers 30 cm / 2x box errors but lowered mean F1 on the held-out hand-held bags (README).'),
+    ParamSpec('sparse_placement_search', True, 'Also start the sparse stage from placement hypotheses (placement.py: '
+              'ray-crossing centres, silhouette scales) for a badly wrong association box; a hypothesis replaces the box '
+              'start only when clearly better on common landmarks and silhouettes (README "Placement").'),
+    ParamSpec('sparse_code_restarts', 4, 'Also start the sparse stage from the best of this many lowest-energy '
+              'training codes of the object\'s class (beyond the paper; 0: off; README "Code freedom").'),
+    ParamSpec('support_w_floor', 0.05, 'Weight of the floor prior E_floor in the sparse and dense stages (beyond the '
+              'paper: the lowest points on the floor estimated from the boxes and landmarks; support.py); 0 disables.'),
+    ParamSpec('support_w_height', 1.0, 'Weight of the class height prior E_size in the sparse and dense stages (beyond '
+              'the paper: height inside Category.height_range; support.py); 0 disables.'),
     ParamSpec('dense_enabled', True, 'Run the dense stage (Sec. 4.3 Dense Optimization: SDF decoder, code + 7-DoF '
               'pose) after a successful sparse stage.'),
     ParamSpec('dense_iterations', 20, 'Adam iterations of the dense stage per object and pass.'),
@@ -323,7 +330,9 @@ class OptimNode(FrodoNode):
                             w_geometry=float(p['sparse_w_geometry']), w_code=float(p['sparse_w_code']),
                             optimise_code=bool(p['sparse_optimise_code']), lr_code=float(p['sparse_lr_code']),
                             w_photometric=float(p['sparse_w_photometric']),
-                            placement_search=bool(p['sparse_placement_search']))
+                            placement_search=bool(p['sparse_placement_search']),
+                            code_restarts=int(p['sparse_code_restarts']), w_floor=float(p['support_w_floor']),
+                            w_height=float(p['support_w_height']))
 
     def dense_config(self) -> DenseConfig:
         p = self.params
@@ -333,7 +342,8 @@ class OptimNode(FrodoNode):
                            sharpness=float(p['dense_sharpness']), w_silhouette=float(p['dense_w_silhouette']),
                            w_photometric=float(p['dense_w_photometric']), w_geometry=float(p['dense_w_geometry']),
                            w_depth=float(p['dense_w_depth']), w_code=float(p['dense_w_code']),
-                           lr_code=float(p['dense_lr_code']))
+                           lr_code=float(p['dense_lr_code']), w_floor=float(p['support_w_floor']),
+                           w_height=float(p['support_w_height']))
 
     # ------------------------------------------------------------ worker
     def _work(self) -> None:
@@ -423,9 +433,11 @@ class OptimNode(FrodoNode):
             views = self.view_store.views_of(fused.object_id)
             colour = select_views(self.dense_store.views_of(fused.object_id), config.max_views)
             slam = self.slam_points
+            floor = support.scene_floor(self.tracks, slam)
         t0 = time.perf_counter()
         photometric = ViewBatch(colour) if colour and config.w_photometric > 0 else None   # sparse runs on CPU
-        result = refine(self.prior, code, box, views, slam, config, photometric=photometric)
+        result = refine(self.prior, code, box, views, slam, config, photometric=photometric, floor_height=floor,
+                        height_range=support.class_height_range(fused.class_name), code_class=fused.class_name)
         self.count('sparse_runs')
         if not result.ok:
             self.count('sparse_fallbacks')
@@ -464,9 +476,11 @@ class OptimNode(FrodoNode):
             views = self.dense_store.views_of(oid)
             slam = self.slam_points
             self.dense_views_used[oid] = num_views
+            floor = support.scene_floor(self.tracks, slam)
         t0 = time.perf_counter()
         result = refine_dense(self.prior, sparse.code, sparse.T_world_object, views, slam, box, self.dense_config(),
-                              should_stop=lambda: self.stopping)   # shutdown does not wait for a whole dense stage
+                              should_stop=lambda: self.stopping,   # shutdown does not wait for a whole dense stage
+                              floor_height=floor, height_range=support.class_height_range(sparse.class_name))
         self.count('dense_runs')
         self.dense_info[oid] = (f'{result.views} views, {result.iterations} it, {result.seconds:.2f}s '
                                 f'({result.seconds_per_iteration:.2f}s/it): {result.reason}')

@@ -44,6 +44,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from frodo_optim import support
+
 DEPTH_OFFSETS = (-0.3, -0.15, 0.15, 0.3)     # metres along the mean viewing direction through the ray centre
 SCALE_FACTORS = (1 / 1.25, 1.0, 1.25)         # around the silhouette scale
 SCALE_RANGE = (1 / 3, 3.0)                    # hypotheses' scales relative to the input box scale
@@ -154,7 +156,8 @@ def _projected_boxes(batch, world: torch.Tensor) -> tuple[torch.Tensor, torch.Te
 def search(points_norm: np.ndarray, box, views, batch, slam_points: np.ndarray | None, yaws: np.ndarray, *,
            crop_margin: float, w_silhouette: float, w_geometry: float, truncation: float = 0.3, keep: int = 6,
            starts: int = 16, steps: int = 25, point_samples: int = 128, landmark_samples: int = 128,
-           seed: int = 0) -> list[Hypothesis]:
+           seed: int = 0, floor_height: float | None = None, w_floor: float = 0.0, floor_tolerance: float = 0.05,
+           height_range: tuple[float, float] | None = None, w_height: float = 0.0) -> list[Hypothesis]:
     """Placement hypotheses of one object, best first (at most `keep`; empty when nothing scores finite).
 
     Every (centre, scale, yaw) of the grid in the module docstring is scored at once; the `starts` best
@@ -164,7 +167,8 @@ def search(points_norm: np.ndarray, box, views, batch, slam_points: np.ndarray |
 
     points_norm (P, 3): the decoded shape (normalised frame); box (centre, size, yaw): the input box;
     views: the sparse stage's `View`s and batch: their `sparse._Batch`; slam_points (N, 3) world landmarks or
-    None; yaws (Y,): yaw candidates.
+    None; yaws (Y,): yaw candidates. floor_height / height_range (and their weights): the support priors of
+    `support.py` (E_floor, E_size) added to the score, as in the sparse energy; None: off.
     """
     rng = np.random.default_rng(seed)
     pts = np.asarray(points_norm, dtype=np.float64)
@@ -229,7 +233,7 @@ def search(points_norm: np.ndarray, box, views, batch, slam_points: np.ndarray |
         g = (flat - batch.crop_lo) / (batch.crop_hi - batch.crop_lo) * 2 - 1
         inner = F.grid_sample(batch.dt, g[:, None], mode='bilinear', padding_mode='border', align_corners=False)[:, 0, 0]
         out = torch.maximum(batch.crop_lo - flat, flat - batch.crop_hi).clamp_min(0)
-        d_out = inner + (out.square().sum(-1) + 1e-6).sqrt() / batch.diag                       # (V, H*P)
+        d_out = (inner + (out.square().sum(-1) + 1e-6).sqrt() / batch.diag) * (~batch.unknown(flat)).float()  # (V, H*P)
         e_out = d_out.reshape(len(views), len(centre), -1).mean(2).mean(0)                      # (H,)
         # E_box: sides of the projected box vs the detection's, box diagonals, truncated at 0.3 (a side cut
         # by an occluder must not dominate), sides on the image border skipped
@@ -242,6 +246,10 @@ def search(points_norm: np.ndarray, box, views, batch, slam_points: np.ndarray |
             matched = torch.gather(world, 1, nearest[..., None].expand(-1, -1, 3))
             d = ((marks_t[None] - matched).square().sum(-1) + 1e-9).sqrt()                     # (H, L)
             total = total + w_geometry * d.clamp(max=truncation).mean(1) / truncation
+        if floor_height is not None and w_floor > 0:
+            total = total + w_floor * support.floor_energy(world, floor_height, floor_tolerance)
+        if height_range is not None and w_height > 0:
+            total = total + w_height * support.height_energy(world, height_range)
         return total
 
     # grid: every (centre, scale, yaw), in chunks

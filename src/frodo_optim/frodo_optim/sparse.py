@@ -20,6 +20,13 @@ detections in a bounded set of views:
   for codes that are not centred).
 - Ep (photometric consistency, paper Eq. 5): Huber colour differences of the points between each view and
   its next views, visible points only (`photometric.py`), when colour views are passed (weight w_photometric).
+- E_floor, E_size (beyond the paper, `support.py`): the object's lowest points on the estimated floor plane
+  (when `floor_height` is given) and its metric height inside its class's range (when `height_range` is
+  given); weights w_floor, w_height.
+
+Truncation (beyond the paper): a projected point beyond an image side that the detection touches is
+unknown (the object may continue there), so the points -> mask half does not pull a truncated object back
+into the image (`truncation_aware`).
 
 Initialisation (paper: "exhaustive search for the best rotation about the gravity direction"):
 translation and scale from the association's 3D box (as `core.place_from_box`: scale = box height over
@@ -44,7 +51,7 @@ from scipy.ndimage import distance_transform_edt
 
 from frodo_optim.photometric import checked_view_inputs, photometric_energy
 
-from frodo_optim import placement
+from frodo_optim import placement, support
 
 DT_SIZE = 64          # cells per side of a view's distance-transform crop
 DT_MARGIN = 0.6       # the crop extends this fraction of the box size beyond each side of the detection box
@@ -64,7 +71,7 @@ class SparseConfig:
     w_code: float = 0.01
     w_photometric: float = 0.0        # Ep (photometric.py); needs refine(..., photometric=ViewBatch)
     geometry_truncation: float = 0.1  # metres
-    lr_code: float = 0.005
+    lr_code: float = 0.02             # beyond 0.005: lets the code leave the encoder's (README "Code freedom")
     lr_translation: float = 0.01      # metres per step (Adam)
     lr_yaw: float = 0.02              # radians per step
     lr_log_scale: float = 0.01
@@ -73,6 +80,11 @@ class SparseConfig:
     placement_keep: int = 6           # hypotheses compared with the exact energy
     placement_truncation: float = 0.3  # metres, Eg truncation when scoring hypotheses (wider basin)
     placement_margin: float = 0.05    # a hypothesis must end this fraction below the box start's energy to win
+    truncation_aware: bool = True     # points beyond an image side the detection touches: unknown (no cost)
+    w_floor: float = 0.05             # E_floor (support.py); needs refine(..., floor_height=h)
+    floor_tolerance: float = 0.05     # metres: E_floor = huber((bottom - floor) / floor_tolerance)
+    w_height: float = 1.0             # E_size (support.py); needs refine(..., height_range=(lo, hi))
+    code_restarts: int = 4            # also start from the best of the k lowest-energy training codes (0: off)
     seed: int = 0
 
 
@@ -165,9 +177,10 @@ def select_views(views: list, max_views: int) -> list:
 
 # ------------------------------------------------------------------ energy
 class _Batch:
-    """Views stacked as tensors."""
+    """Views stacked as tensors. truncation_aware: points beyond an image side that the detection touches
+    cost nothing in the points -> mask half (unknown, like pixels outside the image inside the crop)."""
 
-    def __init__(self, views: list[View]):
+    def __init__(self, views: list[View], truncation_aware: bool = True):
         T_cw = np.stack([np.linalg.inv(v.T_world_camera) for v in views])
         self.R = torch.as_tensor(T_cw[:, :3, :3], dtype=torch.float32)            # (V, 3, 3)
         self.t = torch.as_tensor(T_cw[:, :3, 3], dtype=torch.float32)              # (V, 3)
@@ -181,6 +194,14 @@ class _Batch:
         self.crop_lo = torch.as_tensor(crop[:, :2])[:, None]                       # (V, 1, 2)
         self.crop_hi = torch.as_tensor(crop[:, 2:])[:, None]
         self.diag = torch.as_tensor([v.diag for v in views], dtype=torch.float32)[:, None]  # (V, 1)
+        self.image_wh = torch.as_tensor(np.array([v.image_size for v in views], dtype=np.float32))[:, None]  # (V, 1, 2)
+        _, border = placement.detection_boxes(views, DT_MARGIN)
+        self.border = torch.as_tensor(border & truncation_aware)[:, None]           # (V, 1, 4) u0, v0, u1, v1
+
+    def unknown(self, uv: torch.Tensor) -> torch.Tensor:
+        """(V, P) bool: pixels uv (V, P, 2) beyond an image side that the view's detection touches."""
+        beyond = torch.cat([uv < 0, uv >= self.image_wh], -1)                        # (V, P, 4)
+        return (beyond & self.border).any(-1)
 
     def project(self, pts: torch.Tensor):
         """World points (P, 3) -> pixels (V, P, 2) and a validity mask (V, P) (in front of the camera)."""
@@ -199,7 +220,7 @@ class _Batch:
                               align_corners=False)[:, 0, 0]                              # (V, P)
         out = torch.maximum(self.crop_lo - uv, uv - self.crop_hi).clamp_min(0)
         outside = (out.square().sum(-1) + 1e-6).sqrt() - 1e-3
-        d_pm = inner + outside / self.diag
+        d_pm = (inner + outside / self.diag) * (~self.unknown(uv)).float()
         valid_f = valid.float()
         e_pm = (d_pm * valid_f).sum(1) / valid_f.sum(1).clamp_min(1.0)
         # mask -> points: nearest projected point (subset) for every mask sample
@@ -270,7 +291,9 @@ def code_statistics(training_codes) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None = None,
-           config: SparseConfig | None = None, init_yaw: float | None = None, photometric=None) -> SparseResult:
+           config: SparseConfig | None = None, init_yaw: float | None = None, photometric=None,
+           floor_height: float | None = None, height_range: tuple[float, float] | None = None,
+           code_class: str | None = None) -> SparseResult:
     """Yaw search + joint code/pose optimisation of one object (paper Sec. 4.3).
 
     prior: anything with `decode_points(codes) -> (N, 2048, 3)` torch (differentiable) and `training_codes`.
@@ -278,6 +301,9 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
     config.max_views are used, spread evenly); slam_points (N, 3) world landmarks or None.
     init_yaw: if given, skip the exhaustive search and start from this yaw (warm start).
     photometric: optional `photometric.ViewBatch` of the object's colour views for Ep (weight w_photometric).
+    floor_height: world z of the floor (`support.floor_height`) for E_floor; height_range: the class's metric
+    height range (`Category.height_range`) for E_size; None: term off. code_class: the object's class; code
+    restarts (`code_restarts`) then draw only that class's training codes.
     Never raises on bad input: returns the box placement with ok=False and a reason.
     """
     cfg = config or SparseConfig()
@@ -308,17 +334,25 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
         return fallback('no usable views', pts=pts0.numpy())
 
     gen = torch.Generator().manual_seed(int(cfg.seed))
-    batch = _Batch(views)
+    batch = _Batch(views, cfg.truncation_aware)
+    use_floor = floor_height is not None and math.isfinite(float(floor_height)) and cfg.w_floor > 0
+    use_height = height_range is not None and cfg.w_height > 0
     subset = torch.randperm(pts0.shape[0], generator=gen)[:min(cfg.point_samples, pts0.shape[0])]
     mu, sigma = code_statistics(prior.training_codes)
     pts0_np = pts0.numpy().astype(np.float64)
 
-    def energy(pts_norm, z, yaw, t, log_s):
+    def energy(pts_norm, z, yaw, t, log_s, landmarks):
         world = torch.exp(log_s) * pts_norm @ _rot(yaw).T + t
         terms = {'silhouette': batch.silhouette(world, subset),
-                 'geometry': _geometry(world, slam_t, cfg.geometry_truncation),
+                 'geometry': _geometry(world, landmarks, cfg.geometry_truncation),
                  'code': (((z - mu) / sigma) ** 2).mean()}
         total = cfg.w_silhouette * terms['silhouette'] + cfg.w_geometry * terms['geometry'] + cfg.w_code * terms['code']
+        if use_floor:     # beyond the paper: furniture stands on the floor (support.py)
+            terms['floor'] = support.floor_energy(world, floor_height, cfg.floor_tolerance)
+            total = total + cfg.w_floor * terms['floor']
+        if use_height:    # beyond the paper: metric height inside the class's range (support.py)
+            terms['height'] = support.height_energy(world, height_range)
+            total = total + cfg.w_height * terms['height']
         if photometric is not None and cfg.w_photometric > 0:   # paper Eq. 5, visibility-aware (photometric.py)
             terms['photometric'] = photometric_energy(photometric, world, tolerance=0.1 * torch.exp(log_s).detach())
             total = total + cfg.w_photometric * terms['photometric']
@@ -339,19 +373,29 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
         candidates += [(h.yaw, h.translation, h.scale, h.source) for h in placement.search(
             pts0_np, (center, size, box_yaw), views, batch, slam_points, yaws, crop_margin=DT_MARGIN,
             w_silhouette=cfg.w_silhouette, w_geometry=cfg.w_geometry, truncation=cfg.placement_truncation,
-            keep=cfg.placement_keep, seed=cfg.seed)]
-    # landmarks near the input box and near the best-scored hypothesis, one set for all candidates so that their
-    # energies compare; with hypotheses only those in the detections' visual hull (placement.on_silhouettes):
-    # otherwise clutter, floor and neighbour points in a too large region favour the placement that covers them
-    boxes = [(center, size, box_yaw)] + [placement.placed_box(pts0_np, y, t, s) for y, t, s, _ in candidates[4 + len(yaws):][:1]]
-    near = [slam_points_near(slam_points, c, sz, y, margin=0.1 * float(np.max(sz)) + 0.05) for c, sz, y in boxes]
-    slam = near[0] if len(near) == 1 else placement.on_silhouettes(np.unique(np.concatenate(near), axis=0), views, batch)
-    slam_t = torch.as_tensor(slam) if len(slam) >= 5 and cfg.w_geometry > 0 else None
+            keep=cfg.placement_keep, seed=cfg.seed, floor_height=floor_height if use_floor else None,
+            w_floor=cfg.w_floor, floor_tolerance=cfg.floor_tolerance,
+            height_range=height_range if use_height else None, w_height=cfg.w_height)]
+    # landmarks. The box starts use those near the input box (the paper's setting, unchanged). Hypotheses and
+    # code restarts use one common set: those near the input box or the best hypothesis that lie in the
+    # detections' visual hull (placement.on_silhouettes), so that clutter, floor and neighbour points in a too
+    # large region do not favour the placement that covers them. Every run's end state is compared on that
+    # common set (below), never on the set it descended with.
+    def tensor(points):
+        return torch.as_tensor(points) if len(points) >= 5 and cfg.w_geometry > 0 else None
+
+    n_box = 4 + len(yaws)
+    near_input = slam_points_near(slam_points, center, size, box_yaw, margin=0.1 * float(np.max(size)) + 0.05)
+    slam_input, slam_common = tensor(near_input), tensor(near_input)
+    if len(candidates) > n_box:
+        c_h, sz_h, y_h = placement.placed_box(pts0_np, *candidates[n_box][:3])
+        near_h = slam_points_near(slam_points, c_h, sz_h, y_h, margin=0.1 * float(np.max(sz_h)) + 0.05)
+        slam_common = tensor(placement.on_silhouettes(np.unique(np.concatenate([near_input, near_h]), axis=0), views, batch))
     scores = []
     with torch.no_grad():
-        for yaw, t, s, _ in candidates:
+        for k, (yaw, t, s, _) in enumerate(candidates):
             e, _ = energy(pts0, z0, torch.tensor(yaw), torch.as_tensor(t, dtype=torch.float32),
-                          torch.tensor(math.log(s)))
+                          torch.tensor(math.log(s)), slam_input if k < n_box else slam_common)
             scores.append(float(e) if torch.isfinite(e) else np.inf)
     if not np.isfinite(scores).any():
         return fallback('energy is not finite for any yaw candidate', pts=pts0_np)
@@ -359,11 +403,9 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
     input_energy = scores[first_input]
 
     # ---- joint optimisation of code, yaw, translation, log-scale (Adam, fixed iterations) from the best box start
-    # (the box-only initialisation) and from the best placement hypothesis, if any. The hypothesis wins only by
-    # ending `placement_margin` below the box start: near ties (a wrong code fits the silhouettes about equally
-    # well at several scales) keep the box, gross box errors do not tie
-    def descend(yaw0: float, t0, s0: float):
-        z = z0.clone().requires_grad_(cfg.optimise_code)
+    # (the box-only initialisation), from the best placement hypothesis and from the best code restart, if any
+    def descend(yaw0: float, t0, s0: float, z_start: torch.Tensor, landmarks):
+        z = z_start.clone().requires_grad_(cfg.optimise_code)
         yaw = torch.tensor(yaw0, requires_grad=True)
         t = torch.as_tensor(t0, dtype=torch.float32).clone().requires_grad_(True)
         log_s = torch.tensor(math.log(s0), requires_grad=True)
@@ -377,7 +419,7 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
         done = 0
         for it in range(int(cfg.iterations) + 1):
             pts = prior.decode_points(z.to(device)).float().cpu()[0] if cfg.optimise_code else pts0
-            total, terms = energy(pts, z, yaw, t, log_s)
+            total, terms = energy(pts, z, yaw, t, log_s, landmarks)
             if initial_terms is None:
                 initial_terms = {k: float(v.detach()) for k, v in terms.items()} | {"total": float(total.detach())}
             if not torch.isfinite(total):
@@ -393,18 +435,79 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
             done = it + 1
         return best, initial_terms, done
 
-    n_box = 4 + len(yaws)
     starts = [int(np.argmin(scores[:n_box]))] + ([n_box + int(np.argmin(scores[n_box:]))] if len(scores) > n_box else [])
-    runs = [(descend(*candidates[k][:3]), k) for k in starts]
-    final = [r[0][0][0] if r[0][0] is not None else np.inf for r in runs]
-    if len(runs) > 1 and np.isfinite(final[0]):
-        final[1] /= 1.0 - cfg.placement_margin
-    (best, initial_terms, done), k_best = runs[int(np.argmin(final))]
-    yaw0, source = candidates[k_best][0], candidates[k_best][3]
-    best_e, best_it, zb, yb, tb, lsb, terms_b = best
-    s = math.exp(lsb)
+    runs = [(descend(*candidates[k][:3], z0, slam_input if k < n_box else slam_common), candidates[k]) for k in starts]
+    # ---- code restarts (beyond the paper): the encoder's code of an unseen design can be a different shape
+    # than the silhouettes show, and Adam steps near it do not leave its basin. Every training code (of the
+    # object's class when known) is scored with the exact energy at the input box (shape-specific box fit) with
+    # the best box start's yaw and its opposite; the `code_restarts` best are then scored at every yaw
+    # candidate, and Adam also runs from the best of those
+    if cfg.code_restarts > 0 and cfg.optimise_code:
+        train = torch.as_tensor(prior.training_codes, dtype=torch.float32).cpu()
+        classes = list(getattr(prior, 'training_classes', []))
+        pool = [i for i in range(len(train)) if code_class is None or len(classes) != len(train) or classes[i] == code_class]
+        yaw_box = candidates[starts[0]][0]
+
+        def code_energy(i: int, pts_i: torch.Tensor, y: float) -> float:
+            t_i, s_i = box_init(pts_i.numpy().astype(np.float64), center, size, y)
+            e, _ = energy(pts_i, train[i], torch.tensor(y), torch.as_tensor(t_i, dtype=torch.float32),
+                          torch.tensor(math.log(s_i)), slam_common)
+            return float(e) if torch.isfinite(e) else math.inf
+
+        with torch.no_grad():
+            decoded = {}
+            for chunk in np.array_split(np.array(pool), max(1, len(pool) // 32)):
+                pts_c = prior.decode_points(train[chunk].to(device)).float().cpu()
+                decoded.update({int(i): p for i, p in zip(chunk, pts_c) if torch.isfinite(p).all()})
+            coarse = sorted((min(code_energy(i, p, yaw_box), code_energy(i, p, yaw_box + math.pi)), i)
+                            for i, p in decoded.items())
+            best_restart = None
+            for _, i in coarse[:int(cfg.code_restarts)]:
+                for y in yaws:
+                    e = code_energy(i, decoded[i], float(y))
+                    if best_restart is None or e < best_restart[0]:
+                        t_i, s_i = box_init(decoded[i].numpy().astype(np.float64), center, size, float(y))
+                        best_restart = (e, i, (float(y), t_i, s_i, f'training code {i}'))
+        if best_restart is not None and math.isfinite(best_restart[0]):
+            runs.append((descend(*best_restart[2][:3], train[best_restart[1]], slam_common), best_restart[2]))
+
+    # ---- which run: each end state is scored on the common landmark set; a hypothesis or restart replaces the box
+    # run only when it is clearly better: `placement_margin` lower in total and no worse in the silhouette term
+    # (a wrong code fits the silhouettes about equally well at several scales: near ties keep the box)
+    def common_terms(state) -> dict[str, float]:
+        _, _, z, yaw, t, log_s, _ = state
+        with torch.no_grad():
+            pts = prior.decode_points(z.to(device)).float().cpu()[0] if cfg.optimise_code else pts0
+            total, terms = energy(pts, z, torch.tensor(yaw), torch.as_tensor(t, dtype=torch.float32),
+                                  torch.tensor(log_s), slam_common)
+        return {k: float(v) for k, v in terms.items()} | {'total': float(total)}
+
+    chosen = 0
+    if len(runs) > 1 and runs[0][0][0] is not None:
+        reference = common_terms(runs[0][0][0])
+        y_in, t_in, s_in = candidates[first_input][:3]
+        input_common = common_terms((0, 0, z0, y_in, t_in, math.log(s_in), {}))['total']
+        best_total = min(reference['total'] * (1.0 - cfg.placement_margin), input_common)
+        for k, ((state, _, _), _) in enumerate(runs[1:], 1):
+            if state is None:
+                continue
+            c = common_terms(state)
+            if c['total'] < best_total and c['silhouette'] <= reference['silhouette']:
+                chosen, best_total = k, c['total']
+    elif runs[0][0][0] is None:
+        chosen = next((k for k, r in enumerate(runs) if r[0][0] is not None), 0)
+    (best, initial_terms, done), start_candidate = runs[chosen]
+    yaw0, source = start_candidate[0], start_candidate[3]
     reason = ''
-    if not best_e < input_energy:   # never worse than the input: keep the input placement, say so
+    if best is None:   # no finite state in any run: keep the input placement
+        best = (input_energy, 0, z0, *candidates[first_input][:2], math.log(candidates[first_input][2]), {})
+    best_e, best_it, zb, yb, tb, lsb, terms_b = best
+    if chosen > 0:     # compared on the common landmarks: report those energies, the input's included
+        terms_b, input_energy = common_terms(best), input_common
+    s = math.exp(lsb)
+    # never worse than the input: the box run must end below the input placement's energy (same landmarks); a
+    # hypothesis or restart has already ended below the input placement on the common landmarks
+    if chosen == 0 and not best_e < input_energy:
         yb, tb, s = candidates[first_input][:3]
         zb, reason = z0, f'input placement kept (energy {input_energy:.4f}, nothing lower found)'
     yb = float(math.atan2(math.sin(yb), math.cos(yb)))

@@ -115,3 +115,31 @@ def test_never_worse_than_the_input_placement(prior, scene):
     res = refine(prior, scene['code'], wrong, scene['views'], scene['slam'], wild)
     assert res.energies['total'] <= res.input_energy + 1e-6
     assert np.isfinite(res.T_world_object).all()
+
+
+def test_floor_and_height_priors_stop_a_sunk_oversized_placement(prior, scene):
+    """The real-capture failure (a chair box 30 cm low and 1.36x too big): with the support priors (floor at
+    z = 0, the chair height range) the result stands on the floor at about the true size."""
+    from frodo_common.categories import BY_NAME
+    centre, size, yaw = scene['box']
+    wrong = (centre - np.array([0.0, 0.0, 0.3]), size * 1.36, yaw)
+    res = refine(prior, scene['code'], wrong, scene['views'], scene['slam'], SparseConfig(seed=0),
+                 floor_height=0.0, height_range=BY_NAME['chair'].height_range)
+    placed = _placed(prior, res)
+    centre_err, scale = _errors(prior, res, scene)
+    assert abs(np.sort(placed[:, 2])[:2].mean()) < 0.05, np.sort(placed[:, 2])[:2]
+    assert centre_err < 0.08 and abs(scale - 1) < 0.15, (centre_err, scale, res.placement)
+    assert 'floor' in res.energies and 'height' in res.energies
+
+
+def test_code_restarts_leave_a_wrong_code_for_a_nearby_training_code(prior, scene):
+    """Input code halfway between the scene's code and a table's training code (an encoder that saw the chair
+    badly): with restarts from the nearest training codes the energy ends lower than from the input code alone."""
+    tables = [i for i, c in enumerate(prior.training_classes) if c == 'dining table']
+    bad = (0.5 * np.asarray(scene['code']) + 0.5 * prior.training_codes[tables[0]].cpu().numpy()).astype(np.float32)
+    cfg = SparseConfig(seed=0, placement_search=False, iterations=15)
+    plain = refine(prior, bad, scene['box'], scene['views'], scene['slam'], cfg)
+    restarted = refine(prior, bad, scene['box'], scene['views'], scene['slam'],
+                       SparseConfig(seed=0, placement_search=False, iterations=15, code_restarts=4))
+    assert restarted.energies['total'] <= plain.energies['total'] + 1e-6
+    assert restarted.placement.startswith('training code'), restarted.placement

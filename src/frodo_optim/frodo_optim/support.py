@@ -1,0 +1,95 @@
+"""Physical priors of the sparse and dense stages (beyond the paper; issue 9 item 4).
+
+The paper's energy (Sec. 4.3, Eq. 4) has silhouette, photometric, landmark and code terms only. Nothing in
+it knows that chairs and tables stand on the floor or how tall furniture is, and on hand-held captures
+(close range, objects cut by the image border, few textured landmarks) that freedom is what the optimiser
+uses badly: a shape too tall for its footprint is fitted 20-30 % too large and sunk below the floor so that
+its silhouettes still cover the masks (measured: tables 28 cm below the floor at 1.3x the true scale on the
+real-capture tuning set). Two soft terms rule these placements out:
+
+- **E_floor** (support): the object's lowest surface points lie on the floor plane z = h_f (world z up,
+  CONTRACT.md). Bottom b = mean z of the `k` lowest points; E_floor = huber((b - h_f) / tolerance), with
+  huber(x) = x^2 for |x| <= 1 and 2|x| - 1 beyond (a wrong floor estimate costs linearly, not
+  quadratically). Both directions count: sunk objects and floating ones.
+- **E_size** (class height): the object's metric height H (extent of its points along z) lies in its
+  class's range [H_min, H_max] (`frodo_common.categories.Category.height_range`, shared with the
+  association): E_size = relu(log(H / H_max))^2 + relu(log(H_min / H))^2, zero inside the range.
+
+The floor height h_f is estimated from the scene, not assumed (`floor_height`): the median bottom of the
+association's boxes of floor-standing classes (robust to a few wrong boxes), refined to the densest
+horizontal layer of landmarks near it when there is one (the floor's own texture points).
+"""
+from __future__ import annotations
+
+from typing import Iterable
+
+import numpy as np
+import torch
+
+from frodo_common.categories import BY_NAME
+
+FLOOR_CLASSES = ('chair', 'dining table', 'couch', 'bed')   # stand on the floor (an object on a table does not)
+
+
+def floor_height(boxes: Iterable, landmarks: np.ndarray | None = None, search: float = 0.15, layer: float = 0.02,
+                 min_layer_points: int = 20) -> float | None:
+    """Floor height (m, world z) from the bottoms of floor-standing objects' boxes and landmarks; None if no box.
+
+    boxes: (centre (3,), size (3,), yaw) of the objects (association boxes of FLOOR_CLASSES).
+    The median bottom is the estimate; when `landmarks` (N, 3) hold a horizontal layer of at least
+    `min_layer_points` points `layer` metres thick within `search` metres of it (the densest such layer), that
+    layer's median z replaces it: the floor's own points are a direct measurement, the box bottoms an
+    inference of the association (which may itself assume a floor).
+    """
+    bottoms = [float(c[2]) - 0.5 * float(s[2]) for c, s, _ in boxes
+               if np.isfinite(np.asarray(c, dtype=np.float64)).all() and np.isfinite(np.asarray(s, dtype=np.float64)).all()]
+    if not bottoms:
+        return None
+    floor = float(np.median(bottoms))
+    if landmarks is not None and len(landmarks):
+        z = np.asarray(landmarks, dtype=np.float64).reshape(-1, 3)[:, 2]
+        z = np.sort(z[np.isfinite(z) & (np.abs(z - floor) <= search + layer)])
+        if len(z) >= min_layer_points:
+            hi = np.searchsorted(z, z + layer, side='right')       # points in [z_i, z_i + layer]
+            counts = hi - np.arange(len(z))
+            i = int(np.argmax(counts))
+            if counts[i] >= min_layer_points:
+                floor = float(np.median(z[i:hi[i]]))
+    return floor
+
+
+def bottom(world_pts: torch.Tensor, k: int = 2) -> torch.Tensor:
+    """Mean z (...) of the k lowest of the world points (..., P, 3) (differentiable; robust to a stray point)."""
+    k = max(1, min(int(k), world_pts.shape[-2]))
+    return world_pts[..., 2].topk(k, dim=-1, largest=False).values.mean(-1)
+
+
+def huber(x: torch.Tensor) -> torch.Tensor:
+    """x^2 for |x| <= 1, 2|x| - 1 beyond (continuous value and slope)."""
+    a = x.abs()
+    return torch.where(a <= 1, x * x, 2 * a - 1)
+
+
+def floor_energy(world_pts: torch.Tensor, floor: float, tolerance: float = 0.05, k: int = 2) -> torch.Tensor:
+    """E_floor (...): huber((bottom - floor) / tolerance) of world points (..., P, 3)."""
+    return huber((bottom(world_pts, k) - float(floor)) / float(tolerance))
+
+
+def height_energy(world_pts: torch.Tensor, height_range: tuple[float, float]) -> torch.Tensor:
+    """E_size (...): squared log-distance of the points' (..., P, 3) z extent to [h_min, h_max] (0 inside)."""
+    h = (world_pts[..., 2].amax(-1) - world_pts[..., 2].amin(-1)).clamp_min(1e-6)
+    lo, hi = (float(v) for v in height_range)
+    return torch.relu(torch.log(h / hi)).square() + torch.relu(torch.log(lo / h)).square()
+
+
+def scene_floor(tracks: dict, landmarks: np.ndarray | None = None) -> float | None:
+    """`floor_height` of the association's tracks {id: (class name, (centre, size, yaw))} of FLOOR_CLASSES."""
+    return floor_height([box for name, box in tracks.values() if name in FLOOR_CLASSES], landmarks)
+
+
+def class_height_range(class_name: str) -> tuple[float, float] | None:
+    """The class's metric height range (`Category.height_range`), None for an unknown class or no range."""
+    category = BY_NAME.get(class_name)
+    if category is None or not np.isfinite(category.height_range[1]):
+        return None
+    return category.height_range
