@@ -1,6 +1,7 @@
 """A robot install runs shape_node (and optim_node, which uses this package's prior) without the renderer:
-their modules must not import frodo_datasets, and package.xml must not depend on it at run time (training
-and prior evaluation import it inside their functions)."""
+their modules must not import frodo_datasets, and no dependency leads to it (training and prior evaluation
+import it inside their functions)."""
+import json
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
@@ -16,8 +17,13 @@ def test_shape_and_optim_nodes_do_not_import_frodo_datasets():
     assert out.stdout.strip() == '[]', out.stdout
 
 
-def test_runtime_node_packages_do_not_depend_on_frodo_datasets_at_run_time():
-    for package in ('frodo_detection', 'frodo_association', 'frodo_shape', 'frodo_optim', 'frodo_common'):
+def test_a_robot_build_of_the_runtime_nodes_does_not_pull_frodo_datasets():
+    """Neither package.xml (any dependency type: colcon builds test dependencies too) nor colcon.meta's extra
+    dependencies lead from the four node packages to frodo_datasets."""
+    runtime = ('frodo_detection', 'frodo_association', 'frodo_shape', 'frodo_optim', 'frodo_common')
+    meta = json.loads((PACKAGES.parent / 'colcon.meta').read_text())['names']
+    for package in runtime:
         root = ET.parse(PACKAGES / package / 'package.xml').getroot()
-        run_time = {e.text for tag in ('depend', 'exec_depend', 'build_export_depend') for e in root.iter(tag)}
-        assert 'frodo_datasets' not in run_time, package
+        declared = {e.text for e in root if e.tag.endswith('depend')}
+        assert 'frodo_datasets' not in declared, package
+        assert 'frodo_datasets' not in meta.get(package, {}).get('dependencies', []), package
