@@ -9,13 +9,17 @@ sum per frame. `--scene walk` (default): a box-world walk where all 10 objects s
 `KEYFRAME_SETTINGS`, also
 timing the surface depths from depth (`evidence.surface_depths`). Prints the machine it ran on.
 
-Usage: python bench/bench_association.py [--scene walk|handheld] [--frames 300] [--objects 10] [--seed 0]
+Usage: python bench/bench_association.py [--scene walk|handheld] [--frames 300] [--objects 10] [--seed 0] [--profile]
+(--profile: also where the CPU time goes, cProfile on the process CPU clock, functions of frodo_association by
+cumulative time; the timings then include the profiler's overhead.)
 """
 from __future__ import annotations
 
 import argparse
+import cProfile
 import os
 import platform
+import pstats
 import time
 
 import numpy as np
@@ -44,6 +48,7 @@ def main() -> int:
     ap.add_argument('--objects', type=int, default=10)
     ap.add_argument('--seed', type=int, default=0)
     ap.add_argument('--scene', default='walk', choices=('walk', 'handheld'))
+    ap.add_argument('--profile', action='store_true', help='print the cumulative CPU time per function (cProfile)')
     args = ap.parse_args()
     if args.scene == 'walk':
         scene = make_scene(args.objects, args.seed, n_frames=args.frames, size=(640, 480), extent=2.0, radius=7.5,
@@ -56,6 +61,9 @@ def main() -> int:
     in_view = np.array([len(labels) for labels, _ in dets])
     assoc = Associator(AssociationConfig(**KEYFRAME_SETTINGS)) if args.scene == 'handheld' else Associator()
     t_evidence, t_assoc, t_refine = [], [], []
+    profiler = cProfile.Profile(time.process_time) if args.profile else None
+    if profiler:
+        profiler.enable()
     for f, (labels, boxes) in zip(scene.frames, dets):
         surface = None
         t0 = time.perf_counter()
@@ -69,6 +77,10 @@ def main() -> int:
         assoc.refine_boxes()
         t_assoc.append(1e3 * (t1 - t0))
         t_refine.append(1e3 * (time.perf_counter() - t1))
+    if profiler:
+        profiler.disable()
+        stats = pstats.Stats(profiler)
+        stats.sort_stats('cumulative').print_stats(r'frodo_association|robust_lsq', 25)
     a, r = np.array(t_assoc), np.array(t_refine)
     print(f'machine: {platform.node()} | {_cpu_name()} | {os.cpu_count()} logical CPUs | '
           f'python {platform.python_version()} | numpy {np.__version__} | load avg {os.getloadavg()[0]:.1f}')
