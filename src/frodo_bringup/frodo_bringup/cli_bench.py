@@ -13,8 +13,8 @@ from frodo_bringup.bench import ALL_SECTIONS, SECTIONS, run_all, summary
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `frodo bench`."""
     parser.add_argument('--out', default='out/bench', metavar='DIR',
-                        help='output directory: bench.json, optimiser.png, association.png, diagnostics.png '
-                             '(default: %(default)s)')
+                        help='output directory: bench.json, optimiser.png, association.png, diagnostics.png, '
+                             'soak/soak.json + soak.png (default: %(default)s)')
     parser.add_argument('--quick', action='store_true',
                         help='fewer views, objects, frames and repeats (a few minutes on 2 CPUs)')
     parser.add_argument('--only', nargs='+', choices=ALL_SECTIONS, metavar='SECTION',
