@@ -20,6 +20,9 @@ ASSOCIATIONS = '/frodo/associations'
 TRACKS = '/frodo/tracks'
 CODES = '/frodo/codes'
 OBJECT_CODES = '/frodo/object_codes'
+# Several optimiser workers: worker k >= 1 publishes its share of the object map under this prefix, worker 0
+# merges the shares into the complete map of the contract topics (frodo_optim.merge; see object_share_topic).
+OBJECT_SHARES = '/frodo/internal/object_shares'
 
 # Per-frame sensor streams: reliable so a bag played fast loses nothing; deep queue for bursts.
 FRAME_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
@@ -31,3 +34,11 @@ LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
 # object map): a queue deep enough that one worker's message is never overwritten by another's before it is read.
 MERGED_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
+
+
+def object_share_topic(kind: str, worker: int) -> str:
+    """Internal topic of optimiser worker `worker`'s share of `kind` ('objects', 'boxes' or 'object_states'),
+    e.g. /frodo/internal/object_shares/worker_1/objects. One topic per worker and kind, latched (LATCHED_QOS):
+    transient-local history is kept per writer, so one writer per topic makes a (re)started merger get every
+    worker's last share, even with a depth-1 queue."""
+    return f'{OBJECT_SHARES}/worker_{int(worker)}/{kind}'

@@ -14,9 +14,11 @@ Out: /frodo/objects (contract: TRIANGLE_LIST per object, world vertices), /frodo
      state idle|busy and pending_objects.
 
 Several workers (parameters worker_index k, worker_count N) split the objects by id (id % N == k): each takes
-only its own objects' tracks, codes and views, and publishes only its share of the object map; every
-message says what the worker has (ADDs) and every id it has retracted (DELETEs, repeated), never DELETEALL,
-so listeners that apply the messages of all workers by object id hold the whole map. With map_dir the
+only its own objects' tracks, codes and views; workers 1..N-1 publish their share of the outputs on internal
+topics (topics.object_share_topic) and worker 0 merges every share into the complete map of the contract
+topics (frodo_optim.merge, which also says why worker 0). With one worker the outputs are published directly.
+Every message says what the map has (ADDs) and every (class, id) it has retracted (DELETEs, repeated), never
+DELETEALL. With map_dir the
 worker saves its objects after each published stage (frodo_optim.object_map; also on the ~/save_map
 service); with resume it starts from a saved map and republishes it at once.
 """
@@ -40,6 +42,7 @@ from frodo_common.frame_cache import FrameCache
 from frodo_common.params import ParamSpec
 from frodo_optim.core import ObjectEstimate, fused_estimate, world_box
 from frodo_optim.dense import DenseConfig, refine_dense
+from frodo_optim.merge import TABLE_KIND, MapMerger, Retractions
 from frodo_optim.object_map import MapObject, MapWriter, load_maps, map_dirs, worker_map_dir
 from frodo_optim.photometric import ViewBatch, dense_view_from_frame
 from frodo_optim.sparse import SparseConfig, ViewStore, refine, select_views, view_from_mask
@@ -127,9 +130,8 @@ class OptimNode(FrodoNode):
         self.codes: dict[int, tuple[int, int, np.ndarray]] = {}     # id -> (category, views, code)
         self.estimates: dict[int, ObjectEstimate] = {}
         self.mesh_cache: dict[int, tuple[np.ndarray, object]] = {}  # id -> (code, normalised mesh)
-        self.published_ids: set[tuple[str, int]] = set()
         self.mesh_markers: dict[int, tuple[ObjectEstimate, Marker]] = {}   # id -> (estimate, its mesh marker)
-        self.retracted: set[tuple[str, int]] = set()                # published once, now gone: DELETE every time
+        self.retractions = Retractions()                            # published once, now gone: DELETE every time
         self.resumed: dict[int, int] = {}                           # id -> views of its saved estimate (not re-run yet)
         self.pending: set[int] = set()
         self.busy: int | None = None                                # id of the object being reconstructed
@@ -148,9 +150,25 @@ class OptimNode(FrodoNode):
         parts = ('detections', 'associations', 'pose') + (('image',) if self.dense_on else ())
         self.frames = FrameCache(parts, int(self.params['frame_cache_size']))
         self.rng = np.random.default_rng(0)
-        self.objects_pub = self.create_publisher(MarkerArray, topics.OBJECTS, topics.LATCHED_QOS)
-        self.boxes_pub = self.create_publisher(MarkerArray, topics.BOXES, topics.LATCHED_QOS)
-        self.states_pub = self.create_publisher(PointCloud2, OBJECT_STATES, topics.LATCHED_QOS)
+        # Alone or worker 0: the contract topics; worker k >= 1: its share topics, merged by worker 0.
+        sharing = self.worker_index > 0
+        self.objects_pub = self.create_publisher(
+            MarkerArray, topics.object_share_topic('objects', self.worker_index) if sharing else topics.OBJECTS,
+            topics.LATCHED_QOS)
+        self.boxes_pub = self.create_publisher(
+            MarkerArray, topics.object_share_topic('boxes', self.worker_index) if sharing else topics.BOXES,
+            topics.LATCHED_QOS)
+        self.states_pub = self.create_publisher(
+            PointCloud2, topics.object_share_topic(TABLE_KIND, self.worker_index) if sharing else OBJECT_STATES,
+            topics.LATCHED_QOS)
+        self.merger = MapMerger(self.worker_count) if self.worker_count > 1 and not sharing else None
+        self.merge_lock = threading.Lock()   # own share (worker thread) and the others' (executor) are merged
+        if self.merger is not None:
+            for k in range(1, self.worker_count):
+                for msg_type, kind in ((MarkerArray, 'objects'), (MarkerArray, 'boxes'), (PointCloud2, TABLE_KIND)):
+                    self.create_subscription(msg_type, topics.object_share_topic(kind, k),
+                                             self.guarded(lambda m, kind=kind, k=k: self._on_share(kind, k, m),
+                                                          f'worker_{k}_{kind}'), topics.LATCHED_QOS)
         self.map_lock = threading.Lock()
         self.map_writer = (MapWriter(worker_map_dir(self.params['map_dir'], self.worker_index, self.worker_count),
                                      (self.worker_index, self.worker_count)) if self.params['map_dir'] else None)
@@ -531,10 +549,9 @@ class OptimNode(FrodoNode):
         estimates = sorted(self.estimates.values(), key=lambda e: e.object_id)
         current = {(est.class_name, est.object_id) for est in estimates}
         # Every object this worker published and has since dropped gets a DELETE in every message, first (a
-        # listener keyed by id then keeps an object whose class changed): listeners that merge several
-        # workers' messages, or missed one, still drop it. Never DELETEALL: that would wipe other workers'.
-        self.retracted = (self.retracted | (self.published_ids - current)) - current
-        for ns, oid in sorted(self.retracted, key=lambda key: (key[1], key[0])):
+        # listener keyed by id then keeps an object whose class changed): a listener that missed a message still
+        # drops it. Never DELETEALL (a share of several workers' map holds only this worker's objects).
+        for ns, oid in self.retractions.update(current):
             objects.markers.append(conv.delete_marker(ns, oid, now, frame))
             boxes.markers.append(conv.delete_marker(ns, oid, now, frame))
         states = np.zeros(len(estimates), dtype=STATES_DTYPE)
@@ -547,17 +564,48 @@ class OptimNode(FrodoNode):
             states[i] = (est.object_id, est.category, STAGES.index(est.stage), est.num_views, est.scale,
                          est.T_world_object.ravel(), np.r_[center, size, yaw], est.code,
                          sum(est.timings.values()), est.stage_reason)
-        self.published_ids = current
         self.mesh_markers = {oid: entry for oid, entry in self.mesh_markers.items() if oid in self.estimates}
-        self.objects_pub.publish(objects)
-        self.boxes_pub.publish(boxes)
-        self.states_pub.publish(conv.table_to_cloud(states, now, frame))
+        if self.merger is None:       # alone: the map; worker k >= 1: its share
+            self.objects_pub.publish(objects)
+            self.boxes_pub.publish(boxes)
+            self.states_pub.publish(conv.table_to_cloud(states, now, frame))
+        else:
+            with self.merge_lock:
+                self.merger.put_markers('objects', 0, objects)
+                self.merger.put_markers('boxes', 0, boxes)
+                self.merger.put_table(0, states)
+                for kind in ('objects', 'boxes', TABLE_KIND):
+                    self._publish_merged(kind)
         self.count('maps_published')
         if self.map_writer is not None:
             try:
                 self.save_map()
             except OSError as err:   # a full disk must not stop the optimiser
                 self.report_error('map_dir', err)
+
+    def _on_share(self, kind: str, worker: int, msg) -> None:
+        """Worker 0: another worker's share of `kind`; the merged map of that kind is published again."""
+        self.count('shares_received')
+        table = conv.cloud_to_table(msg) if kind == TABLE_KIND else None
+        with self.merge_lock:
+            if table is None:
+                self.merger.put_markers(kind, worker, msg)
+            else:
+                self.merger.put_table(worker, table)
+            self._publish_merged(kind)
+
+    def _publish_merged(self, kind: str) -> None:
+        """Worker 0 (under merge_lock): the complete map of `kind` from every share heard of (CONTRACT.md)."""
+        now, frame = self.get_clock().now().nanoseconds, self.params['world_frame']
+        if kind == TABLE_KIND:
+            table = self.merger.merged_table()
+            if table is not None:
+                self.states_pub.publish(conv.table_to_cloud(table, now, frame))
+        else:
+            (self.objects_pub if kind == 'objects' else self.boxes_pub).publish(
+                self.merger.merged_markers(kind, now, frame))
+            if kind == 'objects':
+                self.count('merged_maps_published')
 
     # ------------------------------------------------------------ object map on disk
     def save_map(self) -> str:
@@ -613,6 +661,7 @@ class OptimNode(FrodoNode):
             values = {'state': state, 'pending_objects': len(waiting),
                       'objects': len(self.estimates), 'tracks': len(self.tracks),
                       'worker': f'{self.worker_index}/{self.worker_count}',
+                      **({'shares_merged': f'{len(self.merger.heard)}/{self.worker_count}'} if self.merger else {}),
                       'resumed_unrefined': len(self.resumed),
                       'sparse_objects': sum(e.stage == 'sparse' for e in self.estimates.values()),
                       'dense_objects': sum(e.stage == 'dense' for e in self.estimates.values()),

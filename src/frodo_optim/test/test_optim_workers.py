@@ -1,5 +1,6 @@
 """optim_node workers and the saved object map in a real rclpy graph (issue 12): two workers split the objects by
-id and their messages merge into one map with every object once (no DELETEALL, deletes only of their own ids);
+id, worker 0 merges their shares, and a plain depth-1 listener of /frodo/objects with the contract QoS finds the
+complete map in the latest message (CONTRACT.md), also when it joins late and after the merger restarts;
 a worker saving its map and a new one resuming from it republish the objects at once, keep them until enough
 new views arrive and then refine them again, and a map that cannot be read is reported while the worker
 starts empty."""
@@ -37,18 +38,21 @@ def _optimiser(name: str, *params: Parameter) -> OptimNode:
 
 
 class _Probe:
-    """Publishes tracks and fused codes as the association and shape nodes do; merges /frodo/objects by id."""
+    """Publishes tracks and fused codes as the association and shape nodes do; listens to the outputs as an
+    outside contract listener does (reliable, transient local, depth 1; the latest message is the map)."""
 
     def __init__(self, executor: SingleThreadedExecutor):
         self.executor = executor
         self.node = rclpy.create_node('optim_workers_probe')
         executor.add_node(self.node)
         self.messages: list[MarkerArray] = []
-        self.merged: dict[int, Marker] = {}
+        self.latest: dict[int, Marker] = {}          # the objects (ADDs) of the latest /frodo/objects message
+        self.boxes: list[MarkerArray] = []
         self.states: list[PointCloud2] = []
         self.diags: list[DiagnosticArray] = []
-        self.node.create_subscription(MarkerArray, topics.OBJECTS, self._on_objects, topics.MERGED_QOS)
-        self.node.create_subscription(PointCloud2, OBJECT_STATES, self.states.append, topics.MERGED_QOS)
+        self.node.create_subscription(MarkerArray, topics.OBJECTS, self._on_objects, topics.LATCHED_QOS)
+        self.node.create_subscription(MarkerArray, topics.BOXES, self.boxes.append, topics.LATCHED_QOS)
+        self.node.create_subscription(PointCloud2, OBJECT_STATES, self.states.append, topics.LATCHED_QOS)
         self.node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self.diags.append, 50)
         self.tracks = self.node.create_publisher(MarkerArray, topics.TRACKS, topics.LATCHED_QOS)
         self.codes = self.node.create_publisher(PointCloud2, topics.OBJECT_CODES, topics.LATCHED_QOS)
@@ -58,12 +62,8 @@ class _Probe:
 
     def _on_objects(self, msg: MarkerArray) -> None:
         self.messages.append(msg)
-        for m in msg.markers:   # what a listener of several workers does: apply every message by object id
-            assert m.action != Marker.DELETEALL
-            if m.action == Marker.DELETE:
-                self.merged.pop(m.id, None)
-            else:
-                self.merged[m.id] = m
+        assert all(m.action != Marker.DELETEALL for m in msg.markers)
+        self.latest = {m.id: m for m in msg.markers if m.action == Marker.ADD}
 
     def publish(self, ids, views: int = 3, deleted=(), tracks: bool = True) -> None:
         table = np.zeros(len(ids), dtype=OBJECT_CODES_DTYPE)
@@ -88,7 +88,15 @@ def _idle(probe: _Probe, name: str) -> bool:
     return status.get('state') == 'idle' and status.get('pending_objects') == '0'
 
 
-def test_two_workers_split_the_objects_and_their_maps_merge_with_every_object_once():
+def _ids(array: MarkerArray) -> list[int]:
+    return sorted(m.id for m in array.markers if m.action == Marker.ADD)
+
+
+def _state_ids(probe: _Probe) -> list[int]:
+    return sorted(conv.cloud_to_table(probe.states[-1])['object_id'].tolist()) if probe.states else []
+
+
+def test_two_workers_split_the_objects_and_a_depth_1_listener_gets_the_complete_map():
     rclpy.init()
     executor = SingleThreadedExecutor()
     try:
@@ -99,24 +107,42 @@ def test_two_workers_split_the_objects_and_their_maps_merge_with_every_object_on
         probe = _Probe(executor)
         assert probe.spin(lambda: probe.tracks.get_subscription_count() == 2 and probe.codes.get_subscription_count() == 2)
         probe.publish([1, 2, 3, 4, 5])
-        assert probe.spin(lambda: sorted(probe.merged) == [1, 2, 3, 4, 5] and _idle(probe, 'optim_node_0')
-                          and _idle(probe, 'optim_node_1')), (sorted(probe.merged), probe.status('optim_node_0'))
+        assert probe.spin(lambda: sorted(probe.latest) == [1, 2, 3, 4, 5] and _idle(probe, 'optim_node_0')
+                          and _idle(probe, 'optim_node_1')), (sorted(probe.latest), probe.status('optim_node_0'))
         for k, w in enumerate(workers):
             assert sorted(w.estimates) == [i for i in (1, 2, 3, 4, 5) if i % 2 == k]   # its share, nothing else
             assert sorted(w.tracks) == sorted(w.estimates) and probe.status(f'optim_node_{k}')['worker'] == f'{k}/2'
-        # every message is one worker's share: no object is published by both
-        shares = [{m.id for m in msg.markers if m.action == Marker.ADD} for msg in probe.messages]
-        assert all(s <= {1, 3, 5} or s <= {2, 4} for s in shares)
-        latest = {}
-        for table in map(conv.cloud_to_table, probe.states):
-            latest[frozenset(int(i) % 2 for i in table['object_id'])] = sorted(table['object_id'].tolist())
-        assert latest == {frozenset({1}): [1, 3, 5], frozenset({0}): [2, 4]}
-        # the association drops object 3: only worker 1 deletes it; the merged map keeps the other four
+        assert probe.status('optim_node_0')['shares_merged'] == '2/2'
+        # One writer of the contract topics (the merger, worker 0); worker 1 publishes its share internally.
+        for topic in (topics.OBJECTS, topics.BOXES, OBJECT_STATES):
+            assert [i.node_name for i in probe.node.get_publishers_info_by_topic(topic)] == ['optim_node_0'], topic
+        assert [i.node_name for i in probe.node.get_publishers_info_by_topic(
+            topics.object_share_topic('objects', 1))] == ['optim_node_1']
+        assert probe.spin(lambda: _ids(probe.boxes[-1]) == [1, 2, 3, 4, 5] and _state_ids(probe) == [1, 2, 3, 4, 5], 10)
+
+        # A listener joining now (depth 1, contract QoS) gets the complete map in its one latched message.
+        late_node = rclpy.create_node('late_listener')
+        executor.add_node(late_node)
+        late: list[MarkerArray] = []
+        late_node.create_subscription(MarkerArray, topics.OBJECTS, late.append, topics.LATCHED_QOS)
+        assert probe.spin(lambda: len(late) == 1 and _ids(late[0]) == [1, 2, 3, 4, 5], 20)
+
+        # The association drops object 3 (worker 1's): the map keeps the other four and DELETEs 3; never DELETEALL.
         probe.publish([1, 2, 4, 5], deleted=[3])
-        assert probe.spin(lambda: sorted(probe.merged) == [1, 2, 4, 5] and _idle(probe, 'optim_node_1'))
-        last_of_worker_1 = [msg for msg in probe.messages if any(m.id in (1, 5) for m in msg.markers)][-1]
-        assert [(m.id, m.action) for m in last_of_worker_1.markers if m.action == Marker.DELETE] == [(3, Marker.DELETE)]
-        assert all(m.action != Marker.DELETE for msg in probe.messages for m in msg.markers if m.id % 2 == 0)
+        assert probe.spin(lambda: sorted(probe.latest) == [1, 2, 4, 5] and _idle(probe, 'optim_node_1')
+                          and _ids(probe.boxes[-1]) == [1, 2, 4, 5] and _state_ids(probe) == [1, 2, 4, 5])
+        assert [(m.id, m.action) for m in probe.messages[-1].markers if m.action == Marker.DELETE] == [(3, Marker.DELETE)]
+
+        # The merger restarts (same name, nothing resumed): it takes worker 1's latched share at once and
+        # publishes the complete map again once its own objects are back from the latched inputs.
+        executor.remove_node(workers[0])
+        workers[0].on_shutdown()
+        workers[0].destroy_node()
+        count = len(probe.messages)
+        workers[0] = _optimiser('optim_node_0', Parameter('worker_index', value=0), Parameter('worker_count', value=2))
+        executor.add_node(workers[0])
+        assert probe.spin(lambda: len(probe.messages) > count and sorted(probe.latest) == [1, 2, 4, 5]
+                          and _idle(probe, 'optim_node_0')), sorted(probe.latest)
     finally:
         executor.shutdown()
         rclpy.shutdown()
@@ -131,7 +157,7 @@ def test_a_saved_map_is_republished_at_once_by_a_resuming_worker_and_refined_on_
         probe = _Probe(executor)
         assert probe.spin(lambda: probe.tracks.get_subscription_count() == 1)
         probe.publish([1, 2])
-        assert probe.spin(lambda: sorted(probe.merged) == [1, 2] and _idle(probe, 'optim_node'))
+        assert probe.spin(lambda: sorted(probe.latest) == [1, 2] and _idle(probe, 'optim_node'))
         saved = json.loads((tmp_path / 'map' / MAP_FILE).read_text())        # written after each stage
         assert [r['id'] for r in saved['objects']] == [1, 2] and saved['objects'][0]['fused_views'] == 3
         client = probe.node.create_client(Trigger, '/optim_node/save_map')
@@ -139,27 +165,27 @@ def test_a_saved_map_is_republished_at_once_by_a_resuming_worker_and_refined_on_
         future = client.call_async(Trigger.Request())
         assert probe.spin(future.done, 10) and future.result().success, future.result()
         assert str(tmp_path / 'map' / MAP_FILE) in future.result().message
-        before = {m.id: conv.marker_to_mesh(m)[0] for m in probe.merged.values()}
+        before = {m.id: conv.marker_to_mesh(m)[0] for m in probe.latest.values()}
         executor.remove_node(first)
         first.on_shutdown()
         first.destroy_node()
 
         # A restarted optimiser (same name, as after a crash) resumes before any input arrives.
-        probe.merged.clear()
+        probe.latest.clear()
         count = len(probe.states)
         second = _optimiser('optim_node', Parameter('resume', value=str(tmp_path / 'map')),
                             Parameter('sparse_enabled', value=True))
         executor.add_node(second)
-        assert probe.spin(lambda: sorted(probe.merged) == [1, 2] and len(probe.states) > count, 20)
+        assert probe.spin(lambda: sorted(probe.latest) == [1, 2] and len(probe.states) > count, 20)
         assert probe.spin(lambda: probe.status('optim_node').get('objects_resumed') == '2', 10)
         for oid, vertices in before.items():
-            assert np.allclose(conv.marker_to_mesh(probe.merged[oid])[0], vertices, atol=1e-5)
+            assert np.allclose(conv.marker_to_mesh(probe.latest[oid])[0], vertices, atol=1e-5)
         # The latched inputs arrive again, the fused codes first (no track yet: the objects stay), but no views
         # yet: the saved estimates stay (no sparse pass without views)
         probe.publish([1, 2], tracks=False)
         assert probe.spin(lambda: int(probe.status('optim_node').get('object_codes_received', 0)) >= 1
                           and _idle(probe, 'optim_node'))
-        assert sorted(second.estimates) == [1, 2] and sorted(probe.merged) == [1, 2]
+        assert sorted(second.estimates) == [1, 2] and sorted(probe.latest) == [1, 2]
         probe.publish([1, 2])
         assert probe.spin(lambda: int(probe.status('optim_node').get('resumed_waiting_for_views', 0)) >= 2
                           and _idle(probe, 'optim_node'))
