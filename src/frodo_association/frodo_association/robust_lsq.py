@@ -50,48 +50,41 @@ def soft_l1_least_squares(fun: Callable[[np.ndarray], tuple[np.ndarray, np.ndarr
     n_start, n_par = p.shape
     factors = np.asarray(damping_factors, dtype=np.float64)
     n_try = len(factors)
-    r, J = fun(p)
+    r, J = (np.array(x) for x in fun(p))
     cost = soft_l1_cost(r, f_scale)
     mu = np.full(n_start, initial_damping)
     active = np.ones(n_start, dtype=bool)
     eye = np.eye(n_par)
-    first = np.arange(n_start)
     for _ in range(max_evals - 1):
-        if not active.any():
+        run = np.nonzero(active)[0]                  # only the starts still running are stepped and evaluated
+        if len(run) == 0:
             break
-        z1 = 1.0 + (r / f_scale) ** 2                                  # (S, M)
-        Jt = J.transpose(0, 2, 1)
-        g = (Jt @ (r / np.sqrt(z1))[..., None])[..., 0]                # (S, P) gradient of the cost
-        H = Jt @ (J * (z1 ** -1.5)[..., None])                         # (S, P, P) Gauss-Newton, loss curvature
+        p_r, r_r, J_r, cost_r = p[run], r[run], J[run], cost[run]
+        z1 = 1.0 + (r_r / f_scale) ** 2                                # (R, M)
+        Jt = J_r.transpose(0, 2, 1)
+        g = (Jt @ (r_r / np.sqrt(z1))[..., None])[..., 0]              # (R, P) gradient of the cost
+        H = Jt @ (J_r * (z1 ** -1.5)[..., None])                       # (R, P, P) Gauss-Newton, loss curvature
         # Variables at a bound that the descent direction would push through are held for this step.
-        held = ((p <= lower) & (g > 0)) | ((p >= upper) & (g < 0))
+        held = ((p_r <= lower) & (g > 0)) | ((p_r >= upper) & (g < 0))
         free = (~held).astype(np.float64)
         diag = np.maximum(np.einsum('spp->sp', H), 1e-12) * free
-        mus = mu[:, None] * factors[None, :]                           # (S, T)
+        mus = mu[run, None] * factors[None, :]                         # (R, T)
         A = (H * free[:, :, None] * free[:, None, :])[:, None] \
             + (mus[..., None] * diag[:, None, :] + (1.0 - free)[:, None, :])[..., None] * eye
-        rhs = np.broadcast_to((g * free)[:, None, :, None], (n_start, n_try, n_par, 1))
-        trial = np.clip(p[:, None] - np.linalg.solve(A, rhs)[..., 0], lower, upper)   # (S, T, P)
-        # Only the starts still running are evaluated (a converged warm start stops costing anything).
-        tried = (np.nonzero(active)[0][:, None] * n_try + np.arange(n_try)).ravel()
-        r_a, J_a = fun(trial.reshape(-1, n_par)[tried])
-        r_t, J_t = np.zeros((n_start * n_try,) + r_a.shape[1:]), np.zeros((n_start * n_try,) + J_a.shape[1:])
-        r_t[tried], J_t[tried] = r_a, J_a
-        cost_t = np.full(n_start * n_try, np.inf)
+        rhs = np.broadcast_to((g * free)[:, None, :, None], (len(run), n_try, n_par, 1))
+        trial = np.clip(p_r[:, None] - np.linalg.solve(A, rhs)[..., 0], lower, upper)   # (R, T, P)
+        r_t, J_t = fun(trial.reshape(-1, n_par))
         with np.errstate(over='ignore', invalid='ignore'):               # a wild trial step is just rejected
-            cost_t[tried] = soft_l1_cost(r_a, f_scale)
-        cost_t = np.where(np.isfinite(cost_t), cost_t, np.inf).reshape(n_start, n_try)
+            cost_t = soft_l1_cost(r_t, f_scale)
+        cost_t = np.where(np.isfinite(cost_t), cost_t, np.inf).reshape(len(run), n_try)
+        k = np.arange(len(run))
         best = np.argmin(cost_t, axis=1)
-        pick = first * n_try + best
-        cost_b = cost_t[first, best]
-        accept = active & (cost_b < cost)
-        step = np.linalg.norm(trial[first, best] - p, axis=1)
-        small_step = step <= xtol * (xtol + np.linalg.norm(p, axis=1))
-        small_gain = accept & (cost - cost_b <= ftol * cost)
-        p = np.where(accept[:, None], trial[first, best], p)
-        r = np.where(accept[:, None], r_t[pick], r)
-        J = np.where(accept[:, None, None], J_t[pick], J)
-        cost = np.where(accept, cost_b, cost)
-        mu = np.where(accept, np.maximum(mus[first, best] / 3.0, 1e-9), np.minimum(mu * factors[-1] * 4.0, 1e9))
-        active &= ~(small_step | small_gain | (mu >= 1e9))
+        cost_b = cost_t[k, best]
+        accept = cost_b < cost_r
+        small_step = np.linalg.norm(trial[k, best] - p_r, axis=1) <= xtol * (xtol + np.linalg.norm(p_r, axis=1))
+        small_gain = accept & (cost_r - cost_b <= ftol * cost_r)
+        took, pick = run[accept], (k * n_try + best)[accept]
+        p[took], r[took], J[took], cost[took] = trial[k, best][accept], r_t[pick], J_t[pick], cost_b[accept]
+        mu[run] = np.where(accept, np.maximum(mus[k, best] / 3.0, 1e-9), np.minimum(mu[run] * factors[-1] * 4.0, 1e9))
+        active[run] = ~(small_step | small_gain | (mu[run] >= 1e9))
     return p, cost
