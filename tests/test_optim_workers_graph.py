@@ -1,8 +1,9 @@
 """More than one optimiser and the saved object map, from the command line's side (issue 12): worker nodes get
 unique names and their parameters (the `optim_node` section of the params files, then worker index/count), the
-run collector merges the workers' shares by object id, `frodo run --optim-workers 2` waits for every worker,
-and in the real graph on the demo bag two workers each reconstruct their share, the merged map has every
-object once, and a worker killed with SIGKILL comes back with its saved objects at once."""
+run collector keeps the latest complete map, `frodo run --optim-workers 2` waits for every worker, and in the
+real graph on the demo bag two workers each reconstruct their share, the latest /frodo/objects message (worker 0
+merges the shares) has every object once, a worker killed with SIGKILL comes back with its saved objects at
+once while the map stays complete, and a killed merger (worker 0) publishes the complete map again."""
 from __future__ import annotations
 
 import ast
@@ -76,8 +77,10 @@ def test_launch_file_takes_optim_workers():
     assert [n.name for n in optimiser_workers(NODES, 2)][-2:] == ['optim_node_0', 'optim_node_1']
 
 
-def test_the_run_collector_merges_the_workers_shares_by_object_id():
-    def share(ids, deleted=()):
+def test_the_run_collector_keeps_the_latest_complete_map():
+    """Each /frodo/objects message is the complete map (CONTRACT.md; several workers are merged by worker 0), so
+    the collector keeps the latest one as it is: an object missing from it is gone, with or without a DELETE."""
+    def complete(ids, deleted=()):
         markers = [conv.delete_marker('chair', oid, 1, 'world') for oid in deleted]
         markers += [conv.box_to_marker(np.array([oid, 0.0, 0.0]), np.ones(3), 0.0, 'chair', oid, 1, 'world')
                     for oid in ids]
@@ -87,18 +90,23 @@ def test_the_run_collector_merges_the_workers_shares_by_object_id():
 
     with RosSession('frodo_test_workers_collector') as session:
         collector = OutputCollector(session.node, ['optim_node_0', 'optim_node_1'])
-        pubs = [(session.node.create_publisher(MarkerArray, topics.OBJECTS, topics.LATCHED_QOS),
-                 session.node.create_publisher(PointCloud2, OBJECT_STATES, topics.LATCHED_QOS)) for _ in range(2)]
-        for (objects, states), (markers, table) in zip(pubs, (share([0, 2]), share([1, 3]))):
+        objects = session.node.create_publisher(MarkerArray, topics.OBJECTS, topics.LATCHED_QOS)
+        states = session.node.create_publisher(PointCloud2, OBJECT_STATES, topics.LATCHED_QOS)
+
+        def publish(ids, deleted=()):
+            markers, table = complete(ids, deleted)
             objects.publish(markers)
             states.publish(table)
+
+        publish([0, 1, 2, 3])
         assert wait_until(lambda: collector.snapshot()[0] is not None
                           and len(collector.snapshot()[0].markers) == 4 and len(collector.snapshot()[2]) == 4, 10)
-        markers, table = share([1], deleted=[3])     # worker 1 drops object 3: worker 0's objects stay
-        pubs[1][0].publish(markers)
-        pubs[1][1].publish(table)
+        publish([0, 1, 2], deleted=[3])
         assert wait_until(lambda: [m.id for m in collector.snapshot()[0].markers] == [0, 1, 2], 10)
         assert sorted(collector.snapshot()[2]) == [0, 1, 2]      # the deleted object's state is left out
+        publish([1, 2])           # e.g. a restarted merger that has not heard of object 0 yet: no DELETE
+        assert wait_until(lambda: [m.id for m in collector.snapshot()[0].markers] == [1, 2]
+                          and sorted(collector.snapshot()[2]) == [1, 2], 10)
 
 
 def test_frodo_run_with_two_workers_waits_for_both(tmp_path):
@@ -158,10 +166,20 @@ def test_two_workers_on_the_demo_bag_share_the_objects_and_a_killed_one_resumes_
         latest = collector._reports['optim_node_1'][-1][1]
         # the restarted worker has its objects back before any new frame (the bag has ended)
         assert latest['objects_resumed'] == str(len(saved[1])) and latest['objects'] == str(len(saved[1])), latest
-        late_listener = OutputCollector(session.node, workers)   # latched: every worker's current share
+        assert sorted(m.id for m in collector.snapshot()[0].markers) == sorted(ids)   # the map stayed complete
+        late_listener = OutputCollector(session.node, workers)   # depth 1, contract QoS: the latched merged map
         assert wait_until(lambda: late_listener.snapshot()[0] is not None
                           and sorted(m.id for m in late_listener.snapshot()[0].markers) == sorted(ids), 20)
+
+        # The merger (worker 0) killed: restarted, it has its own share from its saved map and worker 1's from
+        # its latched share topics, and publishes the complete map again (frodo_optim.merge).
+        old_pid = launcher.pids['optim_node_0']
+        os.kill(old_pid, signal.SIGKILL)
+        assert wait_until(lambda: launcher.pids['optim_node_0'] != old_pid and 'optim_node_0' in monitor.up(), 90), lines
+        after_restart = OutputCollector(session.node, workers)
+        assert wait_until(lambda: after_restart.snapshot()[0] is not None
+                          and sorted(m.id for m in after_restart.snapshot()[0].markers) == sorted(ids), 30)
     finally:
         launcher.shutdown(timeout=30)
         session.close()
-    assert [e.name for e in launcher.failures] == ['optim_node_1']
+    assert [e.name for e in launcher.failures] == ['optim_node_1', 'optim_node_0']

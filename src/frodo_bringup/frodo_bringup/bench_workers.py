@@ -1,7 +1,7 @@
 """`frodo bench --only optim_workers`: objects per minute against the number of optimiser workers.
 
 For each N the bag is reconstructed end to end (`run_bag(..., optim_workers=N)`), while a probe notes when the
-first image entered the graph and when the merged object map (`/frodo/object_states` of every worker) last
+first image entered the graph and when the object map (`/frodo/object_states`, merged by worker 0) last
 changed. Objects per minute = objects in the final map / (last map change - first image), so graph start-up
 and shutdown are not counted. The workers run as separate processes, so their speed-up is bounded by the free
 CPU cores (stated with the figures: on a 2-core machine shared with other jobs, two workers compete with each
@@ -60,7 +60,7 @@ def objects_per_minute(bag: Path, out: Path, workers: Sequence[int] = (1, 2), ra
         log(f'optim_workers: {n} worker(s) on {bag.name} ...')
         with RosSession(f'frodo_bench_workers_{n}') as probe:
             probe.node.create_subscription(Image, topics.IMAGE, on_image, topics.FRAME_QOS)
-            probe.node.create_subscription(PointCloud2, OBJECT_STATES, on_states, topics.MERGED_QOS)
+            probe.node.create_subscription(PointCloud2, OBJECT_STATES, on_states, topics.LATCHED_QOS)
             run_out = out / f'workers_{n}'
             output = io.StringIO()
             result = run_bag(bag, run_out, params, rate=rate, output=output, progress=False, timeout=1800,

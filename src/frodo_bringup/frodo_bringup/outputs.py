@@ -27,12 +27,9 @@ OBJECTS_FILE = 'objects.json'
 MESH_DIR = 'meshes'
 
 
-def apply_markers(markers: dict[int, Marker], array: MarkerArray | None) -> dict[int, Marker]:
-    """Apply the array's ADD / DELETE / DELETEALL actions in order to {id: marker} (in place; returned).
-
-    Applied to every message of several publishers (optimiser workers, each publishing its share of the
-    objects and DELETEs of the ones it dropped), this merges their shares into one map.
-    """
+def current_markers(array: MarkerArray | None) -> dict[int, Marker]:
+    """{id: marker} after applying the array's ADD / DELETE / DELETEALL actions in order."""
+    markers: dict[int, Marker] = {}
     for marker in array.markers if array is not None else ():
         if marker.action == Marker.DELETEALL:
             markers.clear()
@@ -41,11 +38,6 @@ def apply_markers(markers: dict[int, Marker], array: MarkerArray | None) -> dict
         else:
             markers[marker.id] = marker
     return markers
-
-
-def current_markers(array: MarkerArray | None) -> dict[int, Marker]:
-    """{id: marker} after applying the array's ADD / DELETE / DELETEALL actions in order."""
-    return apply_markers({}, array)
 
 
 def weld_vertices(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

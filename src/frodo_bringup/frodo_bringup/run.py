@@ -3,8 +3,8 @@
 Launch the graph, wait until its nodes are up and subscribed, play the bag, wait until the optimiser
 (every optimiser worker) reports `state` = idle and `pending_objects` = 0 after the bag has finished
 (CONTRACT.md "Done") and no node's diagnostics counters move any more (see `OutputCollector.done`),
-write the output files from `/frodo/objects`, `/frodo/boxes` and `/frodo/object_states` (each worker's
-messages merged by object id), shut the graph down. With `viewer='rrd'` the Rerun viewer node records the run to `DIR/frodo.rrd`.
+write the output files from the latest `/frodo/objects`, `/frodo/boxes` and `/frodo/object_states` (complete
+in every message, with several optimiser workers too: worker 0 merges their shares), shut the graph down. With `viewer='rrd'` the Rerun viewer node records the run to `DIR/frodo.rrd`.
 """
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from frodo_bringup.graph import (NODES, OPTIMISER, VIEWER, GraphNode, is_optimiser, optimiser_workers,
                                  with_optimiser_parameters)
 from frodo_bringup.launcher import Launcher, NodeExit
-from frodo_bringup.outputs import apply_markers, summary_table, write_outputs
+from frodo_bringup.outputs import current_markers, summary_table, write_outputs
 from frodo_bringup.player import Backpressure, PlayStats, Player, PlayerError
 from frodo_bringup.session import RosSession
 from frodo_common import topics
@@ -70,9 +70,8 @@ def image_counter(name: str) -> str | None:
 
 
 class OutputCollector:
-    """Merges every `/frodo/objects`, `/frodo/boxes` and `/frodo/object_states` message by object id (several
-    optimiser workers each publish their share) and keeps each node's last DONE_REPORTS `/diagnostics`
-    reports (receive time, key/values).
+    """Keeps the latest `/frodo/objects`, `/frodo/boxes` and `/frodo/object_states` (each message is the complete
+    map, CONTRACT.md) and each node's last DONE_REPORTS `/diagnostics` reports (receive time, key/values).
 
     optimisers: the nodes that must all be idle for the graph to be done (the optimiser or its workers).
     """
@@ -84,23 +83,23 @@ class OutputCollector:
         self.states: dict[int, np.void] = {}
         self._reports: dict[str, collections.deque[tuple[float, dict[str, str]]]] = {}
         self._lock = threading.Lock()
-        node.create_subscription(MarkerArray, topics.OBJECTS, self._on_objects, topics.MERGED_QOS)
-        node.create_subscription(MarkerArray, topics.BOXES, self._on_boxes, topics.MERGED_QOS)
-        node.create_subscription(PointCloud2, OBJECT_STATES, self._on_states, topics.MERGED_QOS)
+        node.create_subscription(MarkerArray, topics.OBJECTS, self._on_objects, topics.LATCHED_QOS)
+        node.create_subscription(MarkerArray, topics.BOXES, self._on_boxes, topics.LATCHED_QOS)
+        node.create_subscription(PointCloud2, OBJECT_STATES, self._on_states, topics.LATCHED_QOS)
         node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diagnostics, 50)
 
     def _on_objects(self, msg: MarkerArray) -> None:
         with self._lock:
-            self.objects = apply_markers(self.objects or {}, msg)
+            self.objects = current_markers(msg)
 
     def _on_boxes(self, msg: MarkerArray) -> None:
         with self._lock:
-            self.boxes = apply_markers(self.boxes or {}, msg)
+            self.boxes = current_markers(msg)
 
     def _on_states(self, msg: PointCloud2) -> None:
         table = cloud_to_table(msg)
         with self._lock:
-            self.states.update((int(row['object_id']), row) for row in table)
+            self.states = {int(row['object_id']): row for row in table}
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
         now = time.monotonic()
@@ -149,8 +148,8 @@ class OutputCollector:
         return True
 
     def snapshot(self) -> tuple[MarkerArray | None, MarkerArray | None, dict[int, dict[str, Any]]]:
-        """(objects, boxes, per-object info from the optimisers' states) merged from everything received; the
-        states of objects no longer on /frodo/objects or /frodo/boxes (deleted) are left out."""
+        """(objects, boxes, per-object info from the optimiser's states) of the latest messages; the states of
+        objects not on /frodo/objects or /frodo/boxes (deleted since) are left out."""
         with self._lock:
             objects, boxes = dict(self.objects or {}), dict(self.boxes or {})
             rows = [row for oid, row in sorted(self.states.items()) if oid in objects or oid in boxes]

@@ -54,7 +54,7 @@ class ViewerNode(FrodoNode):
         self.create_subscription(Image, topics.DETECTIONS, self.guarded(self._on_detections), q)
         self.create_subscription(PointCloud2, topics.SLAM_POINTS, self.guarded(self._on_slam), q)
         self.create_subscription(MarkerArray, topics.TRACKS, self.guarded(self._on_tracks), topics.LATCHED_QOS)
-        self.create_subscription(MarkerArray, topics.OBJECTS, self.guarded(self._on_objects), topics.MERGED_QOS)
+        self.create_subscription(MarkerArray, topics.OBJECTS, self.guarded(self._on_objects), topics.LATCHED_QOS)
         if self.params['show_ground_truth']:
             self.create_subscription(MarkerArray, topics.GROUND_TRUTH, self.guarded(self._on_ground_truth),
                                      topics.LATCHED_QOS)
@@ -124,9 +124,11 @@ class ViewerNode(FrodoNode):
     def _on_objects(self, msg: MarkerArray) -> None:
         if msg.markers:
             self._time(msg.markers[0].header.stamp)
-        # Optimiser workers each publish their share: an object stays shown until its own DELETE.
-        cleared = {self._entity('world/objects', m) for m in msg.markers if m.action == Marker.DELETE}
-        self.shown_objects = (self.shown_objects - cleared) | self._log_meshes(msg, 'world/objects', 1.0)
+        logged = self._log_meshes(msg, 'world/objects', 1.0)
+        deleted = {self._entity('world/objects', m) for m in msg.markers if m.action == Marker.DELETE}
+        for path in self.shown_objects - logged - deleted:   # each message is the complete map (CONTRACT.md)
+            rr.log(path, rr.Clear(recursive=True))
+        self.shown_objects = logged
         self.count('maps_logged')
 
     def diagnostic_values(self) -> dict:

@@ -1,5 +1,6 @@
 """The Rerun viewer node, run as its own process in a real rclpy graph, records frames and object meshes
-into an .rrd that `rerun rrd verify` accepts."""
+into an .rrd that `rerun rrd verify` accepts; an object missing from a later /frodo/objects message (each one is
+the complete map, CONTRACT.md) is cleared."""
 import os
 import signal
 import subprocess
@@ -9,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
 from visualization_msgs.msg import MarkerArray
@@ -16,6 +18,7 @@ from visualization_msgs.msg import MarkerArray
 from frodo_common import conversions as conv
 from frodo_common import topics
 from frodo_common.geometry import look_at
+from frodo_common.testing import latest_status
 
 
 def _wait_for_subscribers(node, publishers, timeout=20.0):
@@ -36,6 +39,8 @@ def test_viewer_records_a_verifiable_rrd(tmp_path):
                 'info': node.create_publisher(CameraInfo, topics.CAMERA_INFO, topics.FRAME_QOS),
                 'pose': node.create_publisher(PoseStamped, topics.POSE, topics.FRAME_QOS),
                 'objects': node.create_publisher(MarkerArray, topics.OBJECTS, topics.LATCHED_QOS)}
+        diags = []
+        node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, diags.append, 50)
         _wait_for_subscribers(node, pubs.values())
         K = np.array([[100.0, 0, 32], [0, 100, 24], [0, 0, 1]])
         for i in range(3):
@@ -45,6 +50,12 @@ def test_viewer_records_a_verifiable_rrd(tmp_path):
             pubs['pose'].publish(conv.make_pose_stamped(look_at([2, 0, 1], [0, 0, 0.5]), stamp, 'world'))
         verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=float)
         pubs['objects'].publish(MarkerArray(markers=[conv.mesh_to_marker(verts, [[0, 1, 2]], 'chair', 1, 0, 'world')]))
+        deadline = time.time() + 20
+        while time.time() < deadline and latest_status(diags, 'viewer_node').get('maps_logged') != '1':
+            rclpy.spin_once(node, timeout_sec=0.1)
+        assert latest_status(diags, 'viewer_node').get('objects_shown') == '1'
+        # The next map has object 2 only, and no DELETE of object 1 (e.g. from a restarted optimiser).
+        pubs['objects'].publish(MarkerArray(markers=[conv.mesh_to_marker(verts, [[0, 1, 2]], 'chair', 2, 0, 'world')]))
         time.sleep(2.0)
     finally:
         rclpy.shutdown()
@@ -57,3 +68,5 @@ def test_viewer_records_a_verifiable_rrd(tmp_path):
     assert verify.returncode == 0, verify.stdout + verify.stderr
     stats = subprocess.run([str(rerun_cli), 'rrd', 'print', str(rrd)], capture_output=True, text=True, timeout=60)
     assert 'world/objects' in stats.stdout + stats.stderr and 'world/camera' in stats.stdout + stats.stderr
+    assert '/world/objects/chair_1 - data columns: [Clear:is_recursive]' in stats.stdout + stats.stderr
+    assert '/world/objects/chair_2 - data columns: [Clear' not in stats.stdout + stats.stderr

@@ -30,10 +30,6 @@ FRAME_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durabi
 # Latched state (object map, boxes, tracks, fused codes): late joiners get the latest complete message.
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
-# Listeners of a latched topic with several publishers (optimiser workers each publish their share of the
-# object map): a queue deep enough that one worker's message is never overwritten by another's before it is read.
-MERGED_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
 
 
 def object_share_topic(kind: str, worker: int) -> str:
