@@ -37,7 +37,7 @@ def add_optimiser_arguments(parser: argparse.ArgumentParser) -> None:
     """--optim-workers, --map-dir, --resume (shared by `frodo launch` and `frodo run`)."""
     parser.add_argument('--optim-workers', type=int, default=1, metavar='N',
                         help='run N optimiser processes (optim_node_0 ... optim_node_<N-1>), worker k taking the '
-                             'objects with id %% N == k; their shares merge into one /frodo/objects '
+                             'objects with id %% N == k; worker 0 merges their shares into the complete /frodo/objects '
                              '(default: %(default)s)')
     parser.add_argument('--map-dir', metavar='DIR',
                         help='the optimiser saves its object map (objects.json + meshes/) to DIR after each '
