@@ -43,8 +43,9 @@ def soft_l1_least_squares(fun: Callable[[np.ndarray], tuple[np.ndarray, np.ndarr
 
     fun: p (N, P) -> (residuals (N, M), Jacobian (N, M, P)); p0: (S, P) starts (inside the bounds);
     lower, upper: (P,) bounds (+-inf where free). Each iteration tries the steps of the damping mu times each of
-    damping_factors in one call of fun (N = S * len(damping_factors); the call costs about as much as one step)
-    and keeps the best. Returns (solutions (S, P), costs (S,)).
+    damping_factors in one call of fun (N = running starts * len(damping_factors); on these small problems the
+    call costs little more than one step) and keeps the best; max_evals bounds the calls of fun.
+    Returns (solutions (S, P), costs (S,)).
     """
     p = np.clip(np.array(p0, dtype=np.float64, ndmin=2), lower, upper)
     n_start, n_par = p.shape
