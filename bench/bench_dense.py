@@ -39,6 +39,7 @@ from frodo_optim.core import place_from_box
 from frodo_optim.dense import DenseConfig, refine_dense
 from frodo_optim.photometric import ViewBatch, dense_view_from_frame
 from frodo_optim.sparse import SparseConfig, pose_matrix, refine, select_views, view_from_mask
+from frodo_optim.support import class_height_range, floor_height
 from frodo_shape.crops import square_crop
 from frodo_shape.fusion import fuse_mean, fuse_vote
 from frodo_shape.prior import ShapePrior
@@ -167,6 +168,8 @@ def stages(args) -> None:
     for bag in args.bags:
         rng = np.random.default_rng(args.seed)
         objects = _objects_of_bag(Path(bag), prior, args.views, rng)
+        # support priors as in the node: floor from the (perturbed) boxes, the class height range
+        floor = None if args.no_support else floor_height([o['box'] for o in objects], objects[0]['slam'] if objects else None)
         for i, o in enumerate(objects):
             row = {'bag': Path(bag).name, 'object': i, 'class': o['class'], 'views': len(o['sparse_views'])}
             centre, size, yaw = o['box']
@@ -179,12 +182,15 @@ def stages(args) -> None:
                 scfg = SparseConfig(**{'max_views': args.views, **sparse_base, **s_over})
                 t0 = time.perf_counter()
                 colour = ViewBatch(select_views(o['dense_views'], scfg.max_views)) if scfg.w_photometric > 0 else None
-                sp = refine(prior, code, o['box'], o['sparse_views'], o['slam'], scfg, photometric=colour)
+                heights = None if args.no_support else class_height_range(o['class'])
+                sp = refine(prior, code, o['box'], o['sparse_views'], o['slam'], scfg, photometric=colour,
+                            floor_height=floor, height_range=heights, code_class=o['class'])
                 t_sparse = time.perf_counter() - t0
                 mesh = prior.mesh(sp.code, resolution=64)
                 row[f'sparse[{name}]'] = _score(mesh.copy().apply_transform(sp.T_world_object), o['gt_points'])
                 dcfg = DenseConfig(**{'max_views': args.views, **dense_base, **d_over})
-                dn = refine_dense(prior, sp.code, sp.T_world_object, o['dense_views'], o['slam'], o['box'], dcfg)
+                dn = refine_dense(prior, sp.code, sp.T_world_object, o['dense_views'], o['slam'], o['box'], dcfg,
+                                  floor_height=floor, height_range=heights)
                 dmesh = prior.mesh(dn.code, resolution=64) if dn.improved else mesh
                 row[f'dense[{name}]'] = _score(dmesh.copy().apply_transform(dn.T_world_object), o['gt_points'])
                 row[f'dense[{name}]'].update(improved=dn.improved, seconds=round(dn.seconds, 1),
@@ -222,6 +228,7 @@ def main(argv=None) -> int:
     s.add_argument('--sparse', default='', help='SparseConfig overrides (JSON)')
     s.add_argument('--dense', default='', help='DenseConfig overrides (JSON)')
     s.add_argument('--seed', type=int, default=0)
+    s.add_argument('--no-support', action='store_true', help='no floor / class height priors (support.py)')
     s.add_argument('--json', default='')
     for p in (t, s):
         p.add_argument('--threads', type=int, default=1)

@@ -145,7 +145,7 @@ def main() -> None:
             preds['fused'].append(EvalObject(oid, name, fused.mesh_world))
             t0 = time.perf_counter()
             heights = None if args.no_height or name not in BY_NAME else BY_NAME[name].height_range
-            sp = refine(prior, code, box, views, slam, scfg, floor_height=floor, height_range=heights)
+            sp = refine(prior, code, box, views, slam, scfg, floor_height=floor, height_range=heights, code_class=name)
             t_sparse = time.perf_counter() - t0
             smesh = prior.mesh(sp.code, resolution=64) if sp.ok else None
             if smesh is None or len(smesh.faces) == 0:
