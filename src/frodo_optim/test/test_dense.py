@@ -249,3 +249,24 @@ def test_dense_stage_stops_when_asked(prior, scene):
                        config=DenseConfig(iterations=50, grid_resolution=20, rays_per_view=32),
                        should_stop=lambda: calls.append(1) or len(calls) >= 2)
     assert res.iterations <= 2 and 'interrupted' in res.reason
+
+
+def test_floor_prior_lifts_a_sunk_start_towards_the_floor(prior, scene):
+    """Support prior (beyond the paper): started 8 cm below the floor (the chair stands on z = 0), the dense stage
+    with E_floor (floor_height=0) ends with its bottom nearer the floor than without it."""
+    T0 = scene['T'].copy()
+    T0[2, 3] -= 0.08
+    cfg = DenseConfig(iterations=8, grid_resolution=24, rays_per_view=64, w_photometric=0.0, w_depth=0.0,
+                      w_floor=1.0)
+    mesh = prior.mesh(scene['code'], resolution=48)
+
+    def bottom(res):
+        return float(mesh.copy().apply_transform(res.T_world_object).bounds[0, 2])
+
+    with_floor = refine_dense(prior, scene['code'], T0, scene['views'], config=cfg, floor_height=0.0,
+                              height_range=(0.4, 1.35))
+    without = refine_dense(prior, scene['code'], T0, scene['views'], config=cfg)
+    assert 'floor' in with_floor.initial_energies and with_floor.initial_energies['floor'] > 1.0
+    assert 'floor' not in without.initial_energies
+    assert with_floor.improved and abs(bottom(with_floor)) < abs(bottom(without)) - 0.01, \
+        (bottom(with_floor), bottom(without))
