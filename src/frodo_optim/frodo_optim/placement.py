@@ -20,10 +20,13 @@ Hypotheses (centre, scale, yaw):
 
 Score (lower is better), per hypothesis over all views at once:
 
-    score = ws * (E_out + E_box) + wg * Eg_wide
+    score = ws * (E_out + E_box) + wg * Eg_wide [+ w_floor * E_floor + w_height * E_size]
 
 - E_out: the points -> mask half of the silhouette term Es (distance-transform lookup of the projected
-  points, box diagonals), as in `sparse._Batch.silhouette`;
+  points, box diagonals), as in `sparse._Batch.silhouette` (truncation-aware: nothing beyond an image side
+  the detection touches);
+- E_floor, E_size: the support priors of `support.py` (beyond the paper), when a floor height / height range
+  is given;
 - E_box: mean absolute difference between the sides of the projected points' 2D box and the detection's
   box, in box diagonals; sides at the image border are skipped (truncated detections). A cheap stand-in
   for the mask -> points half of Es (which needs nearest neighbours per hypothesis) that penalises too

@@ -34,9 +34,11 @@ the decoded shape's height, the shape's box centre at the box centre), yaw = the
 `yaw_candidates` evenly spaced angles under the energy above with the initial code; next to these, the
 placement hypotheses of `placement.py` (centre and scale from the detections, for a wrong box). Then code,
 yaw, translation and log-scale are optimised jointly with Adam for a fixed number of iterations, from the
-best box start and the best hypothesis (which must end `placement_margin` lower to win); the state with
-the lowest energy seen (the initial one included) is returned, so a diverging run falls back, and the
-input box placement is returned with a reason when nothing lower than it is found.
+best box start, the best hypothesis and the best code restart (`code_restarts`: the lowest-energy training
+codes, beyond the paper); a hypothesis or restart replaces the box run only when clearly better on the same
+landmarks (`placement_margin` lower in total, silhouette term no worse). The state with the lowest energy
+seen (the initial one included) is returned, so a diverging run falls back, and the input box placement is
+returned with a reason when nothing lower than it is found.
 """
 from __future__ import annotations
 
