@@ -66,8 +66,9 @@ def class_shape(coco_id: int, size_range: tuple[float, float]) -> tuple[float, f
 class ObjectTrack:
     """One cluster: id, class, centre (3,), published ("confirmed") or not, 3D box (None until fitted), its
     detection count at the last box fit, whether the deferred truncated rule opened it (until it merges
-    with another cluster or gains min_track_views reliable detections), and whether it merged a cluster opened
-    that way with an ordinary one (its centre then comes from its untruncated detections)."""
+    with another cluster or gains min_track_views reliable detections), whether it merged a cluster opened
+    that way with an ordinary one (its centre then comes from its untruncated detections), and the frame from
+    which its detections are all held (max_detections_per_object thins older ones; its hit ratio counts from there)."""
 
     object_id: int
     coco_id: int
@@ -77,6 +78,7 @@ class ObjectTrack:
     fitted_views: int = 0
     from_truncated: bool = False
     whole_view_center: bool = False
+    recent_from: int = 0        # frame index from which its detections are all held (older ones thinned)
 
 
 @dataclass
@@ -119,6 +121,15 @@ class _Table:
         self.n += k
         return slice(self.n - k, self.n)
 
+    def keep(self, mask: np.ndarray) -> None:
+        """Keep only the rows where mask (n,) is True, in order, in newly allocated columns (the old ones are freed)."""
+        n = int(np.count_nonzero(mask))
+        for name, arr in self._cols.items():
+            kept = np.full((max(16, 2 * n),) + arr.shape[1:], self._fill[name], arr.dtype)
+            kept[:n] = arr[:self.n][mask]
+            self._cols[name] = kept
+        self.n = n
+
     def __getattr__(self, name: str) -> np.ndarray:
         cols = self.__dict__.get('_cols')
         if cols is None or name not in cols:
@@ -143,7 +154,8 @@ class Associator:
                            edge_valid=((4,), bool, False), label=((), np.int64, 0), coco=((), np.int64, 0),
                            frame=((), np.int64, 0), assign=((), np.int64, -1), kept=((), bool, False),
                            valid=((), bool, False), reliable=((), bool, False), truncated=((), bool, False),
-                           sent_id=((), np.int64, -1), sent_kept=((), bool, False))   # as last published
+                           sent_id=((), np.int64, -1), sent_kept=((), bool, False),   # as last published
+                           slot=((), np.int64, 0))                                    # position in its frame
         self.frames = _Table(stamp=((), np.int64, 0), K=((3, 3), np.float64, 0.0),
                              T_world_camera=((4, 4), np.float64, 0.0), T_camera_world=((4, 4), np.float64, 0.0),
                              size=((2,), np.float64, 0.0), start=((), np.int64, 0), stop=((), np.int64, 0))
@@ -158,6 +170,10 @@ class Associator:
         self._last_rotation: np.ndarray | None = None
         self.keyframe_input = False                 # auto_keyframes switched to KEYFRAME_SETTINGS
         self._corners: dict[int, tuple[Box3D, np.ndarray]] = {}   # object id -> (its box, that box's corners)
+        # Retired detections (max_detections_per_object) of frames that still hold live rows: frame index ->
+        # (positions in the frame (k,), their last published rows (k,) ASSOCIATION_DTYPE), for republishing.
+        self._retired: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.retired = 0                            # detections retired so far
 
     # ------------------------------------------------------------ public API
     def add_frame(self, stamp: int, K: np.ndarray, T_world_camera: np.ndarray, size: tuple[int, int],
@@ -237,7 +253,7 @@ class Associator:
         fi = len(self.frames)
         rows = self.rows.append(segment=segments, box=boxes, edge_valid=edge_valid, label=labels, coco=coco,
                                 frame=np.full(len(labels), fi), assign=np.full(len(labels), -1),
-                                kept=np.zeros(len(labels), bool), valid=valid,
+                                kept=np.zeros(len(labels), bool), valid=valid, slot=np.arange(len(labels)),
                                 reliable=valid & big_enough & opens, truncated=valid & big_enough & truncated & ~evidence_opens)
         self.frames.append(stamp=[stamp], K=K[None], T_world_camera=T_world_camera[None],
                            T_camera_world=invert_transform(T_world_camera)[None], size=[(w, h)],
@@ -273,7 +289,9 @@ class Associator:
         sl = self._frame_rows(fi)
         self.rows.sent_id[sl], self.rows.sent_kept[sl] = table['object_id'], table['kept']
         removed = {k: v for k, v in removed.items() if not (k in self.tracks and self.tracks[k].confirmed)}
-        return AssociationUpdate(stamp, table, self._changed_stamps(dirty), removed, bool(removed))
+        update = AssociationUpdate(stamp, table, self._changed_stamps(dirty), removed, bool(removed))
+        self._retire_history()
+        return update
 
     def _recognise_keyframes(self, T_world_camera: np.ndarray, K: np.ndarray, width: int) -> None:
         """auto_keyframes: switch to KEYFRAME_SETTINGS (for good) once the input looks like keyframes far apart,
@@ -322,7 +340,8 @@ class Associator:
 
     def frame_table(self, stamp: int) -> np.ndarray:
         """Current rows (ASSOCIATION_DTYPE) of a processed frame."""
-        sl = self._frame_rows(self.frame_index[stamp])
+        fi = self.frame_index[stamp]
+        sl = self._frame_rows(fi)
         ids, kept = self._row_ids(sl)
         out = np.zeros(len(ids), dtype=ASSOCIATION_DTYPE)
         out['label'] = self.rows.label[sl]
@@ -331,7 +350,13 @@ class Associator:
         out['x'], out['y'], out['z'] = centers.T
         out['object_id'] = ids
         out['kept'] = kept
-        return out
+        if fi not in self._retired:
+            return out
+        positions, retired = self._retired[fi]              # retired rows as last published, in frame order
+        full = np.zeros(len(out) + len(retired), dtype=ASSOCIATION_DTYPE)
+        full[self.rows.slot[sl]] = out
+        full[positions] = retired
+        return full
 
     def confirmed_tracks(self) -> list[ObjectTrack]:
         """Published objects (confirmed clusters), by id."""
@@ -342,6 +367,53 @@ class Associator:
         return np.nonzero(self.rows.assign == object_id)[0]
 
     # ------------------------------------------------------------ bookkeeping
+    def _retire_history(self) -> None:
+        """Bounded history (max_detections_per_object = B > 0; long runs, issue 12). A cluster holding more than B
+        detections keeps its newest B - B // 2 and, of the older ones, at most B // 2 from frames at multiples of a
+        power-of-two stride (an even subsample that only ever drops rows: viewpoints spread over its history for
+        the centre and the box; its hit ratio counts from the recent, complete part, `ObjectTrack.recent_from`);
+        detections unassigned for B frames are retired too. Retired rows leave `self.rows` (no longer clustered,
+        pruned, counted or republished; the columns are reallocated, so their memory is freed); a retired detection
+        keeps what was last published for it, which `frame_table` returns while its frame still has live rows
+        (with its object's current centre)."""
+        cap = self.cfg.max_detections_per_object
+        if cap <= 0:
+            return
+        assign, frame = self.rows.assign, self.rows.frame
+        retire = (assign < 0) & (frame < len(self.frames) - cap)
+        counts = np.bincount(assign[assign >= 0], minlength=self.next_id)
+        for oid in np.nonzero(counts > cap)[0].tolist():
+            rows = np.nonzero(assign == oid)[0]                              # oldest first
+            older = rows[:len(rows) - (cap - cap // 2)]
+            stride = 1                  # frames at multiples of a doubling stride: an even subsample, nested in time
+            while np.count_nonzero(frame[older] % stride == 0) > cap // 2:
+                stride *= 2
+            retire[older[frame[older] % stride != 0]] = True
+            self.tracks[oid].recent_from = int(frame[older[-1]]) + 1
+        if not retire.any():
+            return
+        gone = np.nonzero(retire)[0]
+        table = np.zeros(len(gone), dtype=ASSOCIATION_DTYPE)
+        table['label'], table['bbox'] = self.rows.label[gone], self.rows.box[gone]
+        ids = self.rows.sent_id[gone]
+        table['object_id'], table['kept'] = ids, self.rows.sent_kept[gone]
+        table['x'], table['y'], table['z'] = np.array(
+            [self.tracks[a].center if a in self.tracks else (np.nan,) * 3 for a in ids.tolist()]).reshape(-1, 3).T
+        fis, starts = np.unique(frame[gone], return_index=True)
+        for fi, part in zip(fis.tolist(), np.split(np.arange(len(gone)), starts[1:])):
+            positions, rows_out = self.rows.slot[gone[part]], table[part]
+            if fi in self._retired:
+                positions = np.concatenate([self._retired[fi][0], positions])
+                rows_out = np.concatenate([self._retired[fi][1], rows_out])
+            self._retired[fi] = (positions, rows_out)
+        live = np.concatenate([[0], np.cumsum(~retire)])                  # new row index of each old one
+        self.frames.start[:], self.frames.stop[:] = live[self.frames.start], live[self.frames.stop]
+        self.rows.keep(~retire)
+        self.retired += len(gone)
+        for fi in fis.tolist():                  # a frame without live rows is never republished
+            if self.frames.start[fi] == self.frames.stop[fi]:
+                del self._retired[fi]
+
     def _frame_rows(self, fi: int) -> slice:
         return slice(int(self.frames.start[fi]), int(self.frames.stop[fi]))
 
@@ -629,6 +701,7 @@ class Associator:
             or (survivor.from_truncated != self.tracks[gone].from_truncated)
         survivor.from_truncated = survivor.from_truncated and self.tracks[gone].from_truncated
         survivor.fitted_views = 0                      # refit with the merged detections
+        survivor.recent_from = max(survivor.recent_from, self.tracks[gone].recent_from)
         if survivor.box is None:
             survivor.box = self.tracks[gone].box
         del self.tracks[gone]
@@ -682,6 +755,8 @@ class Associator:
         """`hit_ratio` and whether the cluster centre is in view in the latest frame."""
         t = self.tracks[object_id]
         hit_frames = self.rows.frame[self.members(object_id)]
+        if t.recent_from > 0 and hit_frames.max() >= t.recent_from:   # older ones thinned (max_detections_per_object)
+            hit_frames = hit_frames[hit_frames >= t.recent_from]
         first = int(hit_frames.min())
         fr = slice(first, len(self.frames))
         pc = np.einsum('fij,j->fi', self.frames.T_camera_world[fr][:, :3, :3], t.center) \
