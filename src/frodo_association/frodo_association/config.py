@@ -81,10 +81,11 @@ CONFIG_DOC: dict[str, str] = {
                           'its centre from its untruncated detections once it has min_track_views of them (box-centre '
                           'rays of truncated detections are biased towards the visible part).',
     'max_center_segments': 'Segments per cluster used to re-estimate its centre, evenly spread over its detections.',
-    'max_detections_per_object': 'Bounded history for long runs (0: unbounded): an object holds at most this many '
-                                 'detections, older ones beyond it are retired (its box and published state stay; '
-                                 'retired rows keep what was last published and are no longer clustered, pruned or '
-                                 'republished), and a detection unassigned for this many frames is retired too.',
+    'max_detections_per_object': 'Bounded history for long runs (0: unbounded): a cluster holds at most this many '
+                                 'detections, its newest half and an even subsample of the older ones (the rest are '
+                                 'retired: they keep what was last published and are no longer clustered, pruned or '
+                                 'republished; its box and published state stay); a detection unassigned for this '
+                                 'many frames is retired too.',
     'min_track_views': 'Reliable detections (not truncated, at least min_box_width x min_box_height, scaled) a '
                        'cluster needs before it is published as an object.',
     'min_hit_ratio': 'A cluster is published once it was detected in at least this fraction of the frames whose '
