@@ -386,9 +386,9 @@ class Associator:
             rows = np.nonzero(assign == oid)[0]                              # oldest first
             older = rows[:len(rows) - (cap - cap // 2)]
             stride = 1                  # frames at multiples of a doubling stride: an even subsample, nested in time
-            while np.count_nonzero(frame[older] % stride == 0) > cap // 2:
+            while np.count_nonzero(frame[older] % stride == 0) > cap // 2 and cap // 2 > 0:
                 stride *= 2
-            retire[older[frame[older] % stride != 0]] = True
+            retire[older[(frame[older] % stride != 0) | (cap // 2 == 0)]] = True
             self.tracks[oid].recent_from = int(frame[older[-1]]) + 1
         if not retire.any():
             return
