@@ -203,16 +203,19 @@ def visible(batch: ViewBatch, uv: torch.Tensor, depth: torch.Tensor, tolerance: 
 
 
 def photometric_energy(batch: ViewBatch, points_world: torch.Tensor, neighbours: int = 2, delta: float = 0.1,
-                       tolerance: torch.Tensor | float = 0.03, normals_world: torch.Tensor | None = None) -> torch.Tensor:
+                       tolerance: torch.Tensor | float = 0.03, normals_world: torch.Tensor | None = None,
+                       visibility: torch.Tensor | None = None) -> torch.Tensor:
     """Ep (paper Eq. 5) of world points (P, 3) over all (reference, next `neighbours` views) pairs.
 
     Huber (delta on [0, 1] colour) of the colour difference, per channel, averaged over pairs x points that
-    are visible in both views. 0 when no colour or no pair has a common visible point.
+    are visible in both views. 0 when no colour or no pair has a common visible point. `visibility` (V, P)
+    bool replaces the z-buffer test (e.g. held fixed while checking gradients: the test is piecewise constant).
     """
     if not batch.has_rgb or batch.V < 2:
         return points_world.new_zeros(())
     uv, depth = batch.project(points_world)
-    vis = visible(batch, uv, depth, tolerance, normals_world, points_world)          # (V, P)
+    vis = visibility if visibility is not None else visible(batch, uv, depth, tolerance, normals_world,
+                                                                 points_world)        # (V, P)
     colours = batch.colour_at(uv)                                                    # (V, P, 3)
     k = max(1, min(int(neighbours), batch.V - 1))
     ref = torch.arange(batch.V, device=uv.device).repeat_interleave(k)
