@@ -148,6 +148,14 @@ def test_two_workers_split_the_objects_and_a_depth_1_listener_gets_the_complete_
         rclpy.shutdown()
 
 
+def _saved_ids(map_dir) -> list[int]:
+    """Object ids of the saved map (empty while there is none yet)."""
+    try:
+        return [r['id'] for r in json.loads((map_dir / MAP_FILE).read_text())['objects']]
+    except (FileNotFoundError, json.JSONDecodeError):
+        return []
+
+
 def test_a_saved_map_is_republished_at_once_by_a_resuming_worker_and_refined_on_new_input(tmp_path):
     rclpy.init()
     executor = SingleThreadedExecutor()
@@ -158,8 +166,10 @@ def test_a_saved_map_is_republished_at_once_by_a_resuming_worker_and_refined_on_
         assert probe.spin(lambda: probe.tracks.get_subscription_count() == 1)
         probe.publish([1, 2])
         assert probe.spin(lambda: sorted(probe.latest) == [1, 2] and _idle(probe, 'optim_node'))
-        saved = json.loads((tmp_path / 'map' / MAP_FILE).read_text())        # written after each stage
-        assert [r['id'] for r in saved['objects']] == [1, 2] and saved['objects'][0]['fused_views'] == 3
+        # written after each stage, just after the stage is published: wait for the second object's save
+        assert probe.spin(lambda: _saved_ids(tmp_path / 'map') == [1, 2], 10)
+        saved = json.loads((tmp_path / 'map' / MAP_FILE).read_text())
+        assert saved['objects'][0]['fused_views'] == 3
         client = probe.node.create_client(Trigger, '/optim_node/save_map')
         assert client.wait_for_service(timeout_sec=10)
         future = client.call_async(Trigger.Request())
