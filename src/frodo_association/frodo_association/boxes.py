@@ -154,14 +154,17 @@ def _box_projection(p: np.ndarray, R: np.ndarray, t: np.ndarray, f: np.ndarray, 
 def fit_box(K: np.ndarray, T_camera_world: np.ndarray, boxes: np.ndarray, edge_valid: np.ndarray,
             size_range: tuple[float, float], init_center: np.ndarray, floor_height: float | None = None,
             size_prior_weight: float = 0.05, anchor_weight: float = 1.0, init: Box3D | None = None,
-            shape: tuple[float, float, float] | None = None, height_prior_weight: float = 0.0) -> Box3D:
+            shape: tuple[float, float, float] | None = None, height_prior_weight: float = 0.0,
+            truncation_hinge: bool = True) -> Box3D:
     """Upright 3D box whose projection matches 2D detection boxes over several views.
 
     K: (V, 3, 3); T_camera_world: (V, 4, 4); boxes: (V, 4) detection boxes; edge_valid: (V, 4) bool, False
     for truncated edges; size_range: the class's (S_min, S_max); init_center: (3,) (the cluster centre);
     floor_height: the box bottom is fixed at this z when given; init: a previous box to start from.
     Residuals: per valid edge, (projected box edge - detection edge) / detection box diagonal, soft-L1
-    loss; plus size_prior_weight * log(size / prior) per dimension with prior = sqrt(S_min * S_max), and
+    loss; with `truncation_hinge`, per truncated edge the same difference when the projected edge lies inside
+    the image side of it, else 0 (the object reaches at least to the border: without this a table never seen
+    whole was fitted as a small box around its visible end); plus size_prior_weight * log(size / prior) per dimension with prior = sqrt(S_min * S_max), and
     anchor_weight * (centre - init_center) (metres) per free centre coordinate. With a class `shape` (long, short,
     height) and height_prior_weight > 0 the prior is (sqrt(long * short), sqrt(long * short), height) instead, the
     height residual weighted by height_prior_weight.
@@ -185,12 +188,20 @@ def fit_box(K: np.ndarray, T_camera_world: np.ndarray, boxes: np.ndarray, edge_v
     prior_jac[3:, :n_center] = anchor_weight * np.eye(n_center)
     anchor = np.asarray(init_center, dtype=np.float64)[:n_center]
 
+    # A truncated edge lies on the image border: the object reaches at least that far, so the projected edge
+    # must not fall inside the image (one-sided: min edges <= the detection's, max edges >= it).
+    cut = ~edge_valid if truncation_hinge else np.zeros_like(edge_valid)
+    outward = np.array([1.0, 1.0, -1.0, -1.0])                          # sign of (proj - box) that is inside
+
     def residuals_and_jacobian(p):                                     # p: (S, P) -> (S, M), (S, M, P)
         proj, jac = _box_projection(p, R, t, f, c, floor_height, with_jacobian=True)
-        r = np.concatenate([((proj - boxes) / diag[:, None])[:, edge_valid],
+        err = (proj - boxes) / diag[:, None]
+        inside = (err * outward > 0).astype(np.float64)
+        r = np.concatenate([err[:, edge_valid], (err * inside)[:, cut],
                             weights * (p[:, n_center:n_center + 3] - np.log(prior)),
                             anchor_weight * (p[:, :n_center] - anchor)], axis=1)
-        return r, np.concatenate([(jac / diag[:, None, None])[:, edge_valid],
+        jac = jac / diag[:, None, None]
+        return r, np.concatenate([jac[:, edge_valid], (jac * inside[..., None])[:, cut],
                                   np.broadcast_to(prior_jac, (len(p),) + prior_jac.shape)], axis=1)
 
     lo_size, hi_size = np.log(0.05), np.log(size_range[1] * 1.2)

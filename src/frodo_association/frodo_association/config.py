@@ -40,7 +40,8 @@ class AssociationConfig:
     objects_on_floor: bool = True
     floor_height: float = 0.0
     size_prior_weight: float = 0.05
-    center_anchor_weight: float = 1.0
+    center_anchor_weight: float = 0.1
+    box_truncation_hinge: bool = True
     box_refit_growth: float = 1.5
     box_max_views: int = 24
     max_box_fits_per_frame: int = 1
@@ -113,6 +114,8 @@ CONFIG_DOC: dict[str, str] = {
     'size_prior_weight': 'Weight of the class size prior (log-size residual) in the box fit.',
     'center_anchor_weight': 'Weight (per metre) pulling the box centre towards the cluster centre in the box fit '
                             '(resolves the depth ambiguity of few or similar views).',
+    'box_truncation_hinge': 'Box fit: a detection edge on the image border says the object reaches at least that '
+                            'far; the projected box edge is pulled out when it lies inside (one-sided residual).',
     'box_refit_growth': 'An object box is refitted when its detection count grew by this factor since the last fit.',
     'box_max_views': 'Detections used per box fit (evenly spread over the object\'s detections).',
     'max_box_fits_per_frame': 'Box fits per processed frame at most (bounds the per-frame latency).',

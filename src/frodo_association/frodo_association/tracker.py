@@ -875,7 +875,7 @@ class Associator:
                             edge_valid, category.size_range, track.center,
                             cfg.floor_height if cfg.objects_on_floor else None, cfg.size_prior_weight,
                             cfg.center_anchor_weight, track.box, class_shape(track.coco_id, category.size_range),
-                            cfg.height_prior_weight)
+                            cfg.height_prior_weight, cfg.box_truncation_hinge)
         return track.box
 
     def _prune_frames(self, frame_indices: list[int]) -> None:

@@ -289,3 +289,38 @@ def test_an_object_first_seen_truncated_then_whole_gives_one_track():
     # apart: a duplicate while published. Either test alone merges them.
     assoc = _run_views([table], views[:40], AssociationConfig(truncated_explained_iou=2.0, box_overlap_merge=2.0))
     assert len(assoc.confirmed_tracks()) == 2
+
+
+def _clipped_views(gt: Box3D, views):
+    """Detection boxes of gt clipped to the image, with edge_valid False on the edges the border cut."""
+    boxes, valid = [], []
+    for T in views:
+        uv, _ = project_points(K, invert_transform(T), gt.corners())
+        raw = np.array([*uv.min(0), *uv.max(0)])
+        box = np.clip(raw, -0.5, [SIZE[0] - 0.5, SIZE[1] - 0.5] * 2)
+        boxes.append(box)
+        valid.append(box == raw)
+    return np.array(boxes), np.array(valid)
+
+
+@pytest.mark.parametrize('hinge', [False, True])
+def test_box_fit_of_an_object_never_seen_whole_reaches_the_border_where_its_detections_are_cut(hinge):
+    # A 2 m table seen from 1.2-2 m around one of its ends, cut by the image border in every view. A cut edge
+    # says the table reaches at least to the border: with the hinge the fitted box's projection does so in every
+    # view; without it the fit (free to shrink towards the visible parts) falls short of the border in one.
+    gt = Box3D(np.array([0.0, 0.0, 0.375]), np.array([2.0, 0.9, 0.75]), 0.0)
+    views = [look_at([x, -1.2, 1.4], [x + 0.5, 0.0, 0.4]) for x in (-1.4, -1.2, -1.0, -0.8)]
+    views += [look_at([-2.0, y, 1.4], [-0.6, y, 0.4]) for y in (-0.3, 0.3)]
+    boxes, valid = _clipped_views(gt, views)
+    assert (~valid).any(axis=1).all()                                   # truncated in every view
+    Ks = np.repeat(K[None], len(views), 0)
+    T_cw = np.stack([invert_transform(T) for T in views])
+    fit = fit_box(Ks, T_cw, boxes, valid, (0.6, 3.0), np.array([-0.5, 0.0, 0.375]), floor_height=0.0,
+                  anchor_weight=0.1, truncation_hinge=hinge)
+    proj, _ = project_boxes(Ks, T_cw, fit.corners()[None])
+    inside = ((proj[:, 0] - boxes) * [1, 1, -1, -1])[~valid]           # > 0: projected edge short of the border
+    assert np.abs(proj[:, 0] - boxes)[valid].max() < 3.0               # the uncut edges are matched either way
+    if hinge:
+        assert inside.max() < 2.0
+    else:
+        assert inside.max() > 8.0
