@@ -23,7 +23,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from visualization_msgs.msg import MarkerArray
 
 from frodo_association.config import CONFIG_DOC, AssociationConfig
-from frodo_association.evidence import depth_image_to_metres, surface_depths
+from frodo_association.evidence import contact_edges, depth_image_to_metres, surface_depths
 from frodo_association.tracker import Associator, detections_from_instances
 from frodo_common import conversions as conv
 from frodo_common import topics
@@ -182,8 +182,9 @@ class AssociationNode(FrodoNode):
             return
         labels, boxes = detections_from_instances(instances)
         surface = self._surface_depths(stamp, instances, labels, K, T_world_camera)
+        contact = contact_edges(instances, labels, boxes, surface) if self.associator.cfg.box_contact_edges else None
         t0 = time.perf_counter()
-        update = self.associator.add_frame(stamp, K, T_world_camera, size, labels, boxes, surface)
+        update = self.associator.add_frame(stamp, K, T_world_camera, size, labels, boxes, surface, contact)
         self.latency_ms.append(1e3 * (time.perf_counter() - t0))
         self.cache.frames.pop(stamp, None)       # processed: free the images (the stamp stays marked complete)
         frame_id = self.params['world_frame']

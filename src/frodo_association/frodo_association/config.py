@@ -42,6 +42,7 @@ class AssociationConfig:
     size_prior_weight: float = 0.05
     center_anchor_weight: float = 0.1
     box_truncation_hinge: bool = True
+    box_contact_edges: bool = True
     box_refit_growth: float = 1.5
     box_max_views: int = 24
     max_box_fits_per_frame: int = 1
@@ -116,6 +117,8 @@ CONFIG_DOC: dict[str, str] = {
                             '(resolves the depth ambiguity of few or similar views).',
     'box_truncation_hinge': 'Box fit: a detection edge on the image border says the object reaches at least that '
                             'far; the projected box edge is pulled out when it lies inside (one-sided residual).',
+    'box_contact_edges': 'Box fit: detection edges where the mask meets another instance (possibly hidden by it) '
+                         'count like edges on the image border.',
     'box_refit_growth': 'An object box is refitted when its detection count grew by this factor since the last fit.',
     'box_max_views': 'Detections used per box fit (evenly spread over the object\'s detections).',
     'max_box_fits_per_frame': 'Box fits per processed frame at most (bounds the per-frame latency).',

@@ -96,3 +96,41 @@ def surface_depths(instances: np.ndarray, labels: np.ndarray, K: np.ndarray, T_c
         out[missing] = landmark_depths(instances, labels[missing], points_world, K, T_camera_world, erode_px,
                                        min_landmarks, landmark_quantile)
     return out
+
+
+def contact_edges(instances: np.ndarray, labels: np.ndarray, boxes: np.ndarray,
+                  surface_depth: np.ndarray | None = None, gap_px: int = 2, band_px: int = 2, min_pixels: int = 3,
+                  min_fraction: float = 0.1, depth_slack: float = 0.1) -> np.ndarray:
+    """Box edges (N, 4) (min u, min v, max u, max v) where the instance's mask meets another instance's.
+
+    Such an edge may be where a nearer object hides this one (a chair pushed under a table ends at the table
+    top), so like an edge on the image border it only says the object reaches at least that far. An edge is in
+    contact when min_fraction (and at least min_pixels) of the mask's outermost band_px pixels on that side lie
+    within gap_px of another instance (a corner touching does not count) that may be in front of it: with surface depths (N,) (`surface_depths`, NaN: unknown) an
+    instance whose visible surface is more than depth_slack behind this one's cannot hide it and does not count.
+    instances: (H, W) uint16 label image; labels: (N,); boxes: (N, 4) pixel-edge boxes (`instance_boxes`).
+    """
+    out = np.zeros((len(labels), 4), dtype=bool)
+    h, w = instances.shape
+    kernel = np.ones((2 * gap_px + 1, 2 * gap_px + 1), np.uint8)
+    for k, (lab, box) in enumerate(zip(labels, boxes)):
+        u0, v0 = max(int(np.floor(box[0] + 0.5)) - gap_px, 0), max(int(np.floor(box[1] + 0.5)) - gap_px, 0)
+        u1, v1 = min(int(np.ceil(box[2] - 0.5)) + gap_px + 1, w), min(int(np.ceil(box[3] - 0.5)) + gap_px + 1, h)
+        window = instances[v0:v1, u0:u1]
+        own = window == lab
+        if not own.any():
+            continue
+        other = (window != 0) & ~own
+        if surface_depth is not None and np.isfinite(surface_depth[k]):
+            behind = labels[np.isfinite(surface_depth) & (surface_depth > surface_depth[k] + depth_slack)]
+            other &= ~np.isin(window, behind)
+        near_other = cv2.dilate(other.astype(np.uint8), kernel) > 0
+        touching = (own & near_other).astype(np.int64)
+        own = own.astype(np.int64)
+        cols, rows = np.nonzero(own.any(axis=0))[0], np.nonzero(own.any(axis=1))[0]
+        sides = (np.s_[:, :cols[0] + band_px], np.s_[:rows[0] + band_px, :],
+                 np.s_[:, cols[-1] - band_px + 1:], np.s_[rows[-1] - band_px + 1:, :])
+        for e, side in enumerate(sides):
+            n_touch = touching[side].sum()
+            out[k, e] = n_touch >= max(min_pixels, min_fraction * own[side].sum())
+    return out

@@ -151,7 +151,8 @@ class Associator:
     def __init__(self, cfg: AssociationConfig | None = None):
         self.cfg = cfg or AssociationConfig()
         self.rows = _Table(segment=((2, 3), np.float64, 0.0), box=((4,), np.float64, 0.0),
-                           edge_valid=((4,), bool, False), label=((), np.int64, 0), coco=((), np.int64, 0),
+                           edge_valid=((4,), bool, False), fit_edges=((4,), bool, False),
+                           label=((), np.int64, 0), coco=((), np.int64, 0),
                            frame=((), np.int64, 0), assign=((), np.int64, -1), kept=((), bool, False),
                            valid=((), bool, False), reliable=((), bool, False), truncated=((), bool, False),
                            sent_id=((), np.int64, -1), sent_kept=((), bool, False),   # as last published
@@ -177,7 +178,8 @@ class Associator:
 
     # ------------------------------------------------------------ public API
     def add_frame(self, stamp: int, K: np.ndarray, T_world_camera: np.ndarray, size: tuple[int, int],
-                  labels: np.ndarray, boxes: np.ndarray, surface_depth: np.ndarray | None = None) -> AssociationUpdate:
+                  labels: np.ndarray, boxes: np.ndarray, surface_depth: np.ndarray | None = None,
+                  contact: np.ndarray | None = None) -> AssociationUpdate:
         """Associate one frame's detections (clustering, merges, confirmation, pruning with the current boxes).
 
         stamp: frame stamp (ns); K: (3, 3); T_world_camera: (4, 4); size: image (width, height);
@@ -189,6 +191,8 @@ class Associator:
         detection may open clusters (`evidence_opens_clusters`), the segment lies at the class's typical centre
         height (`flat_segments`, objects on the floor), and one lower than occluded_fraction of the
         class's typical projected height (not cut vertically) is occluded: it joins clusters but opens none.
+        contact: optional (N, 4) bool, box edges where the mask meets another instance (`evidence.contact_edges`):
+        with `box_contact_edges` the box fit treats them like edges on the image border.
         """
         if stamp in self.frame_index:
             return AssociationUpdate(stamp, self.frame_table(stamp))
@@ -212,6 +216,9 @@ class Associator:
         big_enough = (boxes[:, 2] - boxes[:, 0] >= cfg.min_box_width * scale) \
             & (boxes[:, 3] - boxes[:, 1] >= cfg.min_box_height * scale)
         truncated = ~edge_valid.all(axis=1)
+        fit_edges = edge_valid.copy()
+        if contact is not None and cfg.box_contact_edges:
+            fit_edges &= ~np.asarray(contact, dtype=bool).reshape(-1, 4)
         segments = box_segments(boxes, K, T_world_camera, size_ranges, cfg.depth_margin, cfg.min_depth,
                                 cfg.max_depth)
         surface = np.full(len(labels), np.nan) if surface_depth is None \
@@ -251,7 +258,8 @@ class Associator:
         evidence_opens = has_depth & cfg.evidence_opens_clusters & ~occluded
         opens = (cfg.truncated_opens_clusters | ~truncated | evidence_opens) & ~occluded
         fi = len(self.frames)
-        rows = self.rows.append(segment=segments, box=boxes, edge_valid=edge_valid, label=labels, coco=coco,
+        rows = self.rows.append(segment=segments, box=boxes, edge_valid=edge_valid, fit_edges=fit_edges,
+                                label=labels, coco=coco,
                                 frame=np.full(len(labels), fi), assign=np.full(len(labels), -1),
                                 kept=np.zeros(len(labels), bool), valid=valid, slot=np.arange(len(labels)),
                                 reliable=valid & big_enough & opens, truncated=valid & big_enough & truncated & ~evidence_opens)
@@ -867,7 +875,7 @@ class Associator:
         if len(members) > cfg.box_max_views:
             members = members[np.linspace(0, len(members) - 1, cfg.box_max_views).round().astype(int)]
         frames = self.rows.frame[members]
-        edge_valid = self.rows.edge_valid[members]
+        edge_valid = self.rows.fit_edges[members]
         if not edge_valid.any():
             edge_valid = np.ones_like(edge_valid)
         category = category_by_id(track.coco_id)

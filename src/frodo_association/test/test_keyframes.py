@@ -4,7 +4,8 @@ published, a spurious detection in one keyframe is not)."""
 import numpy as np
 
 from frodo_association.config import KEYFRAME_SETTINGS, AssociationConfig
-from frodo_association.evidence import depth_image_to_metres, landmark_depths, mask_depths, surface_depths
+from frodo_association.evidence import (contact_edges, depth_image_to_metres, landmark_depths, mask_depths,
+                                        surface_depths)
 from frodo_association.segments import complete_truncated_boxes, point_segment_distance
 from frodo_association.synthetic import BoxObject, render_instances
 from frodo_association.tracker import Associator, detections_from_instances
@@ -25,6 +26,23 @@ def test_mask_depth_is_the_median_inside_the_eroded_mask():
     assert d[0] == 2.0 and np.isnan(d[1])
     mm = depth_image_to_metres(np.array([[0, 1500]], np.uint16))
     assert np.isnan(mm[0, 0]) and mm[0, 1] == 1.5
+
+
+def test_contact_edges_are_where_a_mask_meets_a_nearer_instance():
+    table, chair, lone = 67 * 256 + 1, CHAIR * 256 + 1, CHAIR * 256 + 2
+    inst = np.zeros((60, 80), np.uint16)
+    inst[2:25, 10:30] = chair                      # chair back, its lower part hidden by the table top below it
+    inst[25:45, 5:50] = table
+    inst[10:40, 60:75] = lone                      # touches nothing
+    labels = np.array([chair, table, lone])
+    boxes = np.array([[9.5, 1.5, 29.5, 24.5], [4.5, 24.5, 49.5, 44.5], [59.5, 9.5, 74.5, 39.5]])
+    edges = contact_edges(inst, labels, boxes)
+    assert edges[0].tolist() == [False, False, False, True]           # chair: bottom edge meets the table
+    assert edges[1].tolist() == [False, True, False, False]           # table: top edge meets the chair
+    assert not edges[2].any()
+    # With surface depths the table (1.5 m) may hide the chair (2.0 m); the chair cannot hide the table.
+    edges = contact_edges(inst, labels, boxes, np.array([2.0, 1.5, np.nan]))
+    assert edges[0, 3] and not edges[1].any()
 
 
 def test_landmark_depth_is_the_low_quantile_of_the_points_in_the_mask():
