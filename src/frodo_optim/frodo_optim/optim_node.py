@@ -55,6 +55,8 @@ PARAMS = (
     ParamSpec('device', 'auto', "Torch device: 'auto' (cuda if available), 'cpu' or 'cuda'."),
     ParamSpec('mesh_resolution', 64, 'Marching-cubes grid resolution for decoded meshes.'),
     ParamSpec('min_views', 2, 'Views (kept, associated detections) an object needs before it is reconstructed.'),
+    ParamSpec('fill_views', 8, 'An object with fewer kept views than this is optimised with its pruned associated '
+              'views too (truncated or overlapping; evenly spread) up to this many; 0: kept views only.'),
     ParamSpec('code_change_tolerance', 0.02,
               'Re-decode the mesh only when the fused code moved by more than this (relative L2); '
               'box updates alone just re-place the cached mesh.'),
@@ -448,8 +450,9 @@ class OptimNode(FrodoNode):
         when it fails: the fused result stays, with the reason)."""
         config = self.sparse_config()
         with self.cond:
-            views = self.view_store.views_of(fused.object_id)
-            colour = select_views(self.dense_store.views_of(fused.object_id), config.max_views)
+            fill = int(self.params['fill_views'])
+            views = self.view_store.views_of(fused.object_id, fill)
+            colour = select_views(self.dense_store.views_of(fused.object_id, fill), config.max_views)
             slam = self.slam_points
             floor = support.scene_floor(self.tracks, slam)
         t0 = time.perf_counter()
@@ -491,7 +494,7 @@ class OptimNode(FrodoNode):
         (with the reason) when the dense result is not better or the stage cannot run."""
         oid = sparse.object_id
         with self.cond:
-            views = self.dense_store.views_of(oid)
+            views = self.dense_store.views_of(oid, int(self.params['fill_views']))
             slam = self.slam_points
             self.dense_views_used[oid] = num_views
             floor = support.scene_floor(self.tracks, slam)

@@ -109,3 +109,17 @@ def test_view_store_is_bounded_and_follows_reassociation(chair_scene):
     assert 2 <= len(mine) <= 8 and len(store) <= 30
     store.assign(19, {513: (2, True)})                 # a re-send: the association confirmed object 2
     assert len(store.views_of(2)) == 1 and len(store.views_of(1)) == len(mine) - 1
+
+
+def test_view_store_fills_an_object_short_of_kept_views_with_its_pruned_ones(chair_scene):
+    from frodo_optim.sparse import ViewStore
+    views = chair_scene['views']
+    store = ViewStore(per_object=64)
+    for stamp in range(12):
+        store.add(stamp, 257, 1, stamp in (0, 5, 9), views[stamp % len(views)])   # 3 kept of 12
+        store.add(stamp, 513, 2, False, views[0])                                  # another object's, pruned
+    assert len(store.views_of(1)) == 3 and store.views_of(2) == []
+    filled = store.views_of(1, fill_to=8)
+    assert len(filled) == 8
+    assert len(store.views_of(1, fill_to=30)) == 12 and len(store.views_of(2, fill_to=4)) == 4
+    assert len(store.views_of(1, fill_to=3)) == 3                       # enough kept views: nothing added
