@@ -1,13 +1,15 @@
 """A configurable stand-in node for launcher tests and dry runs of the command line.
 
 It counts images on the contract image topic and reports on /diagnostics; optionally it crashes with a
-given exit code after a delay or ignores Ctrl-C, and optionally it behaves like a minimal optimiser: `state` /
-`pending_objects` diagnostics and one fixed object (a tetrahedron and its box) on the latched
-/frodo/objects and /frodo/boxes once images have arrived. Launch it under any node name with
+given exit code after a delay, ignores Ctrl-C or stalls in its ROS teardown, and optionally it behaves like
+a minimal optimiser: `state` / `pending_objects` diagnostics and one fixed object (a tetrahedron and its
+box) on the latched /frodo/objects and /frodo/boxes once images have arrived. Launch it under any node name with
 `-r __node:=NAME`.
 """
 from __future__ import annotations
 
+import ctypes
+import math
 import os
 import signal
 import sys
@@ -30,6 +32,8 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec('busy_for', 0.5, 'As optimiser: seconds after the last image during which state is busy.'),
     ParamSpec('startup_delay', 0.0, 'Seconds the constructor takes (a node loading a big model).'),
     ParamSpec('ignore_sigint', False, 'Ignore SIGINT (a node that hangs on Ctrl-C; SIGTERM still stops it).'),
+    ParamSpec('stall_teardown', 0.0, 'Seconds destroy_node blocks in C with the GIL held, deaf to signals '
+              '(a ROS teardown stalled in rcl / DDS).'),
 )
 TETRAHEDRON_VERTICES = np.array([[0.0, 0.0, 0.0], [0.4, 0.0, 0.0], [0.0, 0.4, 0.0], [0.0, 0.0, 0.4]]) + [1, 2, 0]
 TETRAHEDRON_FACES = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
@@ -73,6 +77,14 @@ class StubNode(FrodoNode):
         self.get_logger().error(f'stub crashing on purpose with code {self.params["crash_code"]}')
         sys.stderr.flush()
         os._exit(int(self.params['crash_code']))
+
+    def destroy_node(self) -> None:
+        """With stall_teardown, first block the way a deadlocked rcl / DDS teardown does: in C, GIL held, signals
+        only cutting a sleep short (PyDLL keeps the GIL during the call)."""
+        end = time.monotonic() + float(self.params['stall_teardown'])
+        while (left := end - time.monotonic()) > 0:
+            ctypes.PyDLL(None).sleep(math.ceil(left))
+        super().destroy_node()
 
     def diagnostic_values(self) -> dict[str, Any]:
         """As optimiser: busy while images keep coming, else idle; never any pending object."""

@@ -13,6 +13,9 @@ overrides must tolerate that (a report whose values changed under it is retried)
 """
 from __future__ import annotations
 
+import atexit
+import ctypes
+import faulthandler
 import functools
 import gc
 import os
@@ -41,6 +44,9 @@ OK, WARN, ERROR = 0, 1, 2
 STOP_POLL_S = 0.1
 # Attempts at collecting a report whose node values changed while being read (RuntimeError from a dict).
 DIAGNOSTICS_ATTEMPTS = 3
+# Longest the ROS teardown after a stop may take (destroy_node, rclpy shutdown, joining the executor's threads) before
+# the process ends itself as stopped by SIGINT (seconds); well under the launcher's 10 s between SIGINT and SIGTERM.
+TEARDOWN_LIMIT_S = 5.0
 
 
 class FrodoNode(Node):
@@ -197,12 +203,71 @@ def freeze_startup_objects() -> int:
     return gc.get_freeze_count()
 
 
+class _Timespec(ctypes.Structure):
+    _fields_ = [('tv_sec', ctypes.c_long), ('tv_nsec', ctypes.c_long)]
+
+
+class _ITimerspec(ctypes.Structure):
+    _fields_ = [('it_interval', _Timespec), ('it_value', _Timespec)]
+
+
+class _SigEvent(ctypes.Structure):
+    """Linux `struct sigevent` (64 bytes) as far as SIGEV_SIGNAL needs it."""
+    _fields_ = [('sigev_value', ctypes.c_void_p), ('sigev_signo', ctypes.c_int), ('sigev_notify', ctypes.c_int),
+                ('_rest', ctypes.c_int * 12)]
+
+
+def _kernel_signal_after(signum: int, seconds: float) -> Callable[[], None] | None:
+    """Have the kernel send `signum` to this process after `seconds` (a POSIX timer: no thread of ours, no GIL);
+    returns the function that cancels it, None where such timers are not available."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        timer = ctypes.c_void_p()
+        event = _SigEvent(sigev_signo=signum, sigev_notify=0)   # SIGEV_SIGNAL
+        if libc.timer_create(time.CLOCK_MONOTONIC, ctypes.byref(event), ctypes.byref(timer)) != 0:
+            return None
+        whole = int(seconds)
+        expiry = _ITimerspec(it_value=_Timespec(whole, int((seconds - whole) * 1e9)))
+        if libc.timer_settime(timer, 0, ctypes.byref(expiry), None) != 0:
+            libc.timer_delete(timer)
+            return None
+        return lambda: libc.timer_delete(timer)
+    except (OSError, AttributeError):
+        return None
+
+
+def bound_teardown(limit_s: float = TEARDOWN_LIMIT_S) -> None:
+    """Make the ROS teardown of this process end within `limit_s` + 0.5 s, however it goes.
+
+    Why: a stall inside rcl / DDS teardown runs in C with the GIL held (or in a join the stop flag cannot
+    shorten), so neither the stop flag nor the launcher's SIGTERM ends it; in CI a stub node outlived SIGINT
+    and SIGTERM until the launcher's SIGKILL, its subscriptions already destroyed. From here on SIGINT and
+    SIGTERM have their default effect (a second Ctrl-C kills at once); after `limit_s` every thread's stack goes
+    to stderr (faulthandler's watchdog needs no GIL), so the log names the stall, and 0.5 s later a kernel timer
+    sends SIGINT, which ends the process the way Ctrl-C does: the status the launcher counts as a clean stop.
+    Only for a process's main: nothing of it is undone (the process is ending).
+    """
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, signal.SIG_DFL)
+    try:
+        faulthandler.dump_traceback_later(limit_s, file=sys.stderr)
+    except (ValueError, OSError, AttributeError):   # stderr without a file descriptor
+        pass
+    cancel = _kernel_signal_after(signal.SIGINT, limit_s + 0.5)
+    # Disarmed once the threads are joined (atexit): the interpreter's finalization that follows has SIGINT and
+    # SIGTERM back at their defaults anyway, so the launcher's SIGTERM ends it should it stall.
+    atexit.register(faulthandler.cancel_dump_traceback_later)
+    if cancel is not None:
+        atexit.register(cancel)
+
+
 def run_node(node_factory: Callable[[], Node], args: list[str] | None = None, threads: int = 2) -> int:
     """Init rclpy, spin the node until Ctrl-C / SIGTERM / external shutdown, then clean up; returns an exit code.
 
     SIGINT and SIGTERM only set a stop flag, checked between spins: a signal that arrives while the node is
     still being built (loading a prior can take seconds) stops it as soon as it is up, instead of being
-    lost the way rclpy's own handlers lose it before the executor exists.
+    lost the way rclpy's own handlers lose it before the executor exists. Once the node's own `on_shutdown`
+    has run, the ROS teardown is bounded (`bound_teardown`).
     """
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
@@ -223,6 +288,8 @@ def run_node(node_factory: Callable[[], Node], args: list[str] | None = None, th
             shutdown_hook = getattr(node, 'on_shutdown', None)
             if shutdown_hook is not None:
                 shutdown_hook()
+        bound_teardown()
+        if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
     return 0
