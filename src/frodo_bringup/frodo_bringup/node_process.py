@@ -2,7 +2,8 @@
 
 Runs `MODULE.main()` and exits with its return code. Before that it asks Linux to send this process
 SIGTERM when the launcher that started it dies (even by SIGKILL), so a killed launcher leaves no
-orphan nodes behind.
+orphan nodes behind, and, before importing MODULE, turns SIGINT / SIGTERM into the stop request that
+`run_node` acts on (a Ctrl-C during the imports is kept, not swallowed by them).
 """
 from __future__ import annotations
 
@@ -11,6 +12,8 @@ import importlib
 import os
 import signal
 import sys
+
+from frodo_common.stop_signals import install_stop_handlers
 
 _PR_SET_PDEATHSIG = 1
 
@@ -33,6 +36,7 @@ def main() -> int:
         print('usage: python -m frodo_bringup.node_process MODULE [--ros-args ...]', file=sys.stderr)
         return 2
     module_name = sys.argv[1]
+    install_stop_handlers()
     terminate_with_parent()
     sys.argv = [module_name] + sys.argv[2:]
     code = importlib.import_module(module_name).main()

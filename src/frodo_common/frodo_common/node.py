@@ -37,6 +37,7 @@ from rclpy.signals import SignalHandlerOptions
 from frodo_common import topics
 from frodo_common.frame_cache import FrameCache
 from frodo_common.params import COMMON_PARAMS, ParamSpec
+from frodo_common.stop_signals import install_stop_handlers
 
 # Diagnostic levels as ints (the message field is a single byte).
 OK, WARN, ERROR = 0, 1, 2
@@ -266,12 +267,13 @@ def run_node(node_factory: Callable[[], Node], args: list[str] | None = None, th
 
     SIGINT and SIGTERM only set a stop flag, checked between spins: a signal that arrives while the node is
     still being built (loading a prior can take seconds) stops it as soon as it is up, instead of being
-    lost the way rclpy's own handlers lose it before the executor exists. Once the node's own `on_shutdown`
-    has run, the ROS teardown is bounded (`bound_teardown`).
+    lost the way rclpy's own handlers lose it before the executor exists; one that came before (while
+    `node_process` imported the node's modules) means the node is not built at all. Once the node's own
+    `on_shutdown` has run, the ROS teardown is bounded (`bound_teardown`).
     """
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+    stop = install_stop_handlers()   # node_process installed them before the imports; a stop then is kept
+    if stop.is_set():
+        return 0
     rclpy.init(args=args if args is not None else sys.argv, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
