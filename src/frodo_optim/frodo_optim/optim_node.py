@@ -100,6 +100,8 @@ PARAMS = (
     ParamSpec('dense_w_depth', 0.5, 'Weight of the registered-depth term (|SDF| at masked depth pixels), when depth is present.'),
     ParamSpec('dense_w_code', 0.01, 'Weight of the code regulariser in the dense stage.'),
     ParamSpec('dense_lr_code', 0.005, 'Adam step size of the shape code in the dense stage.'),
+    ParamSpec('dense_upright', False, 'Dense stage rotates objects about gravity (world z) only; false: any rotation '
+              '(the paper\'s 7-DoF pose).'),
     ParamSpec('dense_rerun_growth', 1.25, 'While other objects wait, re-run an object\'s dense stage only when its '
               'views grew by this factor; the rest are caught up when the queue is empty.'),
     ParamSpec('image_topic', topics.IMAGE, 'Colour image topic (dense stage and photometric terms).'),
@@ -362,7 +364,8 @@ class OptimNode(FrodoNode):
                            sharpness=float(p['dense_sharpness']), w_silhouette=float(p['dense_w_silhouette']),
                            w_photometric=float(p['dense_w_photometric']), w_geometry=float(p['dense_w_geometry']),
                            w_depth=float(p['dense_w_depth']), w_code=float(p['dense_w_code']),
-                           lr_code=float(p['dense_lr_code']), w_floor=float(p['support_w_floor']),
+                           lr_code=float(p['dense_lr_code']), upright=bool(p['dense_upright']),
+                           w_floor=float(p['support_w_floor']),
                            w_height=float(p['support_w_height']))
 
     # ------------------------------------------------------------ worker
