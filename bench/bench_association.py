@@ -7,7 +7,9 @@ and, separately, `Associator.refine_boxes` (at most one 3D box fit per frame, ru
 sum per frame. `--scene walk` (default): a box-world walk where all 10 objects stay in view; `--scene handheld`:
 35 keyframes of the handheld kitchen (`frodo_association.handheld`, real-like masks and drift) with depth and
 `KEYFRAME_SETTINGS`, also
-timing the surface depths from depth (`evidence.surface_depths`). Prints the machine it ran on.
+timing the surface depths from depth (`evidence.surface_depths`). The contact edges of the masks
+(`evidence.contact_edges`, computed by the node before `add_frame`) are timed as a row of their own; `total` is
+association + box refinement, as the node's latency. Prints the machine it ran on.
 
 Usage: python bench/bench_association.py [--scene walk|handheld] [--frames 300] [--objects 10] [--seed 0] [--profile]
 (--profile: also where the CPU time goes, cProfile on the process CPU clock, functions of frodo_association by
@@ -25,7 +27,7 @@ import time
 import numpy as np
 
 from frodo_association.config import KEYFRAME_SETTINGS, AssociationConfig
-from frodo_association.evidence import depth_image_to_metres, surface_depths
+from frodo_association.evidence import contact_edges, depth_image_to_metres, surface_depths
 from frodo_association.synthetic import make_scene
 from frodo_association.tracker import Associator, detections_from_instances
 from frodo_common.geometry import invert_transform
@@ -60,7 +62,7 @@ def main() -> int:
     dets = [detections_from_instances(f.instances) for f in scene.frames]
     in_view = np.array([len(labels) for labels, _ in dets])
     assoc = Associator(AssociationConfig(**KEYFRAME_SETTINGS)) if args.scene == 'handheld' else Associator()
-    t_evidence, t_assoc, t_refine = [], [], []
+    t_evidence, t_contact, t_assoc, t_refine = [], [], [], []
     profiler = cProfile.Profile(time.process_time) if args.profile else None
     if profiler:
         profiler.enable()
@@ -72,7 +74,10 @@ def main() -> int:
                                      depth_image_to_metres(f.depth))
             t_evidence.append(1e3 * (time.perf_counter() - t0))
         t0 = time.perf_counter()
-        assoc.add_frame(f.stamp, f.K, f.T_world_camera_observed, f.size, labels, boxes, surface)
+        contact = contact_edges(f.instances, labels, boxes, surface)
+        t_contact.append(1e3 * (time.perf_counter() - t0))
+        t0 = time.perf_counter()
+        assoc.add_frame(f.stamp, f.K, f.T_world_camera_observed, f.size, labels, boxes, surface, contact)
         t1 = time.perf_counter()
         assoc.refine_boxes()
         t_assoc.append(1e3 * (t1 - t0))
@@ -86,7 +91,8 @@ def main() -> int:
           f'python {platform.python_version()} | numpy {np.__version__} | load avg {os.getloadavg()[0]:.1f}')
     print(f'scene: {args.scene}, {len(scene.objects)} objects, {len(scene.frames)} frames 640x480, detections per frame:'
           f' mean {in_view.mean():.1f} (min {in_view.min()}), tracks at the end: {len(assoc.confirmed_tracks())}')
-    rows = [('association (add_frame)', a), ('box refinement (refine_boxes)', r), ('total', a + r)]
+    rows = [('contact edges (masks)', np.array(t_contact)), ('association (add_frame)', a),
+            ('box refinement (refine_boxes)', r), ('total', a + r)]
     if t_evidence:
         rows.insert(0, ('surface depth (depth image)', np.array(t_evidence)))
     for name, t in rows:
