@@ -85,7 +85,7 @@ class DenseConfig:
     photometric_neighbours: int = 2
     huber_delta: float = 0.1
     occlusion_tolerance: float = 0.1   # normalised units (times the scale: metres)
-    lr_code: float = 0.005
+    lr_code: float = 0.02
     lr_translation: float = 0.005
     lr_rotation: float = 0.01
     upright: bool = False              # True: rotate about gravity (world z) only; False: any rotation (paper)

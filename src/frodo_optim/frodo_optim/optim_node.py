@@ -99,7 +99,7 @@ PARAMS = (
     ParamSpec('dense_w_geometry', 0.5, 'Weight of the landmark term (|SDF| at SLAM points, truncated).'),
     ParamSpec('dense_w_depth', 0.5, 'Weight of the registered-depth term (|SDF| at masked depth pixels), when depth is present.'),
     ParamSpec('dense_w_code', 0.01, 'Weight of the code regulariser in the dense stage.'),
-    ParamSpec('dense_lr_code', 0.005, 'Adam step size of the shape code in the dense stage.'),
+    ParamSpec('dense_lr_code', 0.02, 'Adam step size of the shape code in the dense stage.'),
     ParamSpec('dense_upright', False, 'Dense stage rotates objects about gravity (world z) only; false: any rotation '
               '(the paper\'s 7-DoF pose).'),
     ParamSpec('dense_rerun_growth', 1.25, 'While other objects wait, re-run an object\'s dense stage only when its '
