@@ -189,8 +189,19 @@ def test_geometry_term_gradient(prior, scene):
         prior.decoder.float()
 
 
+def _surface_distance(prior, code_a, T_a, code_b, T_b) -> float:
+    """Symmetric mean nearest-neighbour distance (m) between two decoded, posed surfaces."""
+    from scipy.spatial import cKDTree
+
+    from frodo_common.evaluation import sample_surface
+    pts = [sample_surface(prior.mesh(code, resolution=40).apply_transform(T), 3000)
+           for code, T in ((code_a, T_a), (code_b, T_b))]
+    return 0.5 * (cKDTree(pts[1]).query(pts[0])[0].mean() + cKDTree(pts[0]).query(pts[1])[0].mean())
+
+
 def test_dense_refinement_improves_a_perturbed_start(prior, scene):
-    """From another chair's code (mixed) and a shifted pose the dense stage gets closer to the true chair."""
+    """From another chair's code (mixed) and a shifted pose the dense stage gets closer to the true chair: in
+    energy, position and surface (codes are not compared: different codes can decode to near-equal shapes)."""
     code0 = (0.5 * scene['code'] + 0.5 * scene['other']).astype(np.float32)
     T0 = pose_matrix(0.8, scene['T'][:3, 3] + [0.04, -0.03, 0.0], 0.52)
     cfg = DenseConfig(iterations=12, grid_resolution=24, rays_per_view=96, w_photometric=0.5, w_depth=0.5)
@@ -199,7 +210,9 @@ def test_dense_refinement_improves_a_perturbed_start(prior, scene):
     assert res.energies['total'] < res.initial_energies['total']
     err0 = np.linalg.norm(T0[:3, 3] - scene['T'][:3, 3])
     assert np.linalg.norm(res.translation - scene['T'][:3, 3]) < err0
-    assert np.linalg.norm(res.code - scene['code']) < np.linalg.norm(code0 - scene['code'])
+    before = _surface_distance(prior, code0, T0, scene['code'], scene['T'])
+    after = _surface_distance(prior, res.code, res.T_world_object, scene['code'], scene['T'])
+    assert after < 0.8 * before, (after, before)
 
 
 def test_rollback_keeps_the_input_when_dense_cannot_help(prior, scene):
