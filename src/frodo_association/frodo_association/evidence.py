@@ -106,8 +106,9 @@ def contact_edges(instances: np.ndarray, labels: np.ndarray, boxes: np.ndarray,
     Such an edge may be where a nearer object hides this one (a chair pushed under a table ends at the table
     top), so like an edge on the image border it only says the object reaches at least that far. An edge is in
     contact when min_fraction (and at least min_pixels) of the mask's outermost band_px pixels on that side lie
-    within gap_px of another instance (a corner touching does not count) that may be in front of it: with surface depths (N,) (`surface_depths`, NaN: unknown) an
-    instance whose visible surface is more than depth_slack behind this one's cannot hide it and does not count.
+    within gap_px of another instance that may be in front of it (a corner touching does not count): with surface
+    depths (N,) (`surface_depths`, NaN: unknown) an instance whose visible surface is more than depth_slack behind
+    this one's cannot hide it and does not count.
     instances: (H, W) uint16 label image; labels: (N,); boxes: (N, 4) pixel-edge boxes (`instance_boxes`).
     """
     out = np.zeros((len(labels), 4), dtype=bool)
@@ -125,12 +126,11 @@ def contact_edges(instances: np.ndarray, labels: np.ndarray, boxes: np.ndarray,
             behind = labels[np.isfinite(surface_depth) & (surface_depth > surface_depth[k] + depth_slack)]
             other &= ~np.isin(window, behind)
         near_other = cv2.dilate(other.astype(np.uint8), kernel) > 0
-        touching = (own & near_other).astype(np.int64)
-        own = own.astype(np.int64)
+        touching = own & near_other
         cols, rows = np.nonzero(own.any(axis=0))[0], np.nonzero(own.any(axis=1))[0]
         sides = (np.s_[:, :cols[0] + band_px], np.s_[:rows[0] + band_px, :],
                  np.s_[:, cols[-1] - band_px + 1:], np.s_[rows[-1] - band_px + 1:, :])
         for e, side in enumerate(sides):
-            n_touch = touching[side].sum()
-            out[k, e] = n_touch >= max(min_pixels, min_fraction * own[side].sum())
+            n_touch = np.count_nonzero(touching[side])
+            out[k, e] = n_touch >= max(min_pixels, min_fraction * np.count_nonzero(own[side]))
     return out

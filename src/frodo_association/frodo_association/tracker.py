@@ -875,12 +875,12 @@ class Associator:
         if len(members) > cfg.box_max_views:
             members = members[np.linspace(0, len(members) - 1, cfg.box_max_views).round().astype(int)]
         frames = self.rows.frame[members]
-        edge_valid = self.rows.fit_edges[members]
-        if not edge_valid.any():
-            edge_valid = np.ones_like(edge_valid)
+        fit_edges = self.rows.fit_edges[members]   # uncut edges: not on the border, not against a nearer mask
+        if not fit_edges.any():
+            fit_edges = np.ones_like(fit_edges)
         category = category_by_id(track.coco_id)
         track.box = fit_box(self.frames.K[frames], self.frames.T_camera_world[frames], self.rows.box[members],
-                            edge_valid, category.size_range, track.center,
+                            fit_edges, category.size_range, track.center,
                             cfg.floor_height if cfg.objects_on_floor else None, cfg.size_prior_weight,
                             cfg.center_anchor_weight, track.box, class_shape(track.coco_id, category.size_range),
                             cfg.height_prior_weight, cfg.box_truncation_hinge)
