@@ -162,9 +162,10 @@ def fit_box(K: np.ndarray, T_camera_world: np.ndarray, boxes: np.ndarray, edge_v
     for truncated edges; size_range: the class's (S_min, S_max); init_center: (3,) (the cluster centre);
     floor_height: the box bottom is fixed at this z when given; init: a previous box to start from.
     Residuals: per valid edge, (projected box edge - detection edge) / detection box diagonal, soft-L1
-    loss; with `truncation_hinge`, per truncated edge the same difference when the projected edge lies inside
-    the image side of it, else 0 (the object reaches at least to the border: without this a table never seen
-    whole was fitted as a small box around its visible end); plus size_prior_weight * log(size / prior) per dimension with prior = sqrt(S_min * S_max), and
+    loss; with `truncation_hinge`, per cut edge (edge_valid False: on the image border, or against a nearer mask)
+    the same difference when the projected edge lies inside it, else 0 (the object reaches at least that far:
+    without this a table never seen whole was fitted as a small box around its visible end); plus
+    size_prior_weight * log(size / prior) per dimension with prior = sqrt(S_min * S_max), and
     anchor_weight * (centre - init_center) (metres) per free centre coordinate. With a class `shape` (long, short,
     height) and height_prior_weight > 0 the prior is (sqrt(long * short), sqrt(long * short), height) instead, the
     height residual weighted by height_prior_weight.
@@ -188,8 +189,8 @@ def fit_box(K: np.ndarray, T_camera_world: np.ndarray, boxes: np.ndarray, edge_v
     prior_jac[3:, :n_center] = anchor_weight * np.eye(n_center)
     anchor = np.asarray(init_center, dtype=np.float64)[:n_center]
 
-    # A truncated edge lies on the image border: the object reaches at least that far, so the projected edge
-    # must not fall inside the image (one-sided: min edges <= the detection's, max edges >= it).
+    # A cut edge (image border, nearer mask) only bounds the object from inside: the projected edge must not fall
+    # inside it (one-sided: min edges <= the detection's, max edges >= it).
     cut = ~edge_valid if truncation_hinge else np.zeros_like(edge_valid)
     outward = np.array([1.0, 1.0, -1.0, -1.0])                          # sign of (proj - box) that is inside
 
