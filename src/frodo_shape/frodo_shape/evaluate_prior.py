@@ -7,6 +7,8 @@
 - Training reconstruction: the same for training shapes with their learnt codes.
 - Single-view encoder: held-out shapes rendered like the encoder's training data (random view, material,
   light, floor/wall/backdrop), cropped at the true box (`crops.square_crop`), encoded, meshed, compared.
+  `--handheld-views N`: the same with near cameras and capture conditions (truncation, occlusion, mask
+  errors, blur, exposure; `augment.py`) on every crop.
 - Speed: SDF decoder points/s (forward, forward+backward), point decoder time, encoder images/s.
 
 Metrics at metric object scale: CD = ½(mean NN distance pred→gt + gt→pred) in cm on 10k surface samples
@@ -30,9 +32,12 @@ from scipy.spatial import cKDTree
 from frodo_shape.meshing import grid_points
 from frodo_shape.prior import ShapePrior
 from frodo_shape.sdf_data import SamplingConfig, cached_samples, inside
-from frodo_shape.train import TrainingShape, library_shapes, render_scene
+from frodo_shape.augment import CropAugmentation, augment_crop
+from frodo_shape.train import TrainingShape, library_shapes, load_config, render_scene, render_view
 
 HELDOUT_SEED = 7919  # library seed of the held-out shapes (training priors use library_seed 0)
+HANDHELD_CONFIG = 'furniture_encoder_handheld'  # its `augment:` section: the capture conditions of --handheld-views
+HANDHELD_DISTANCE = (0.7, 4.5)  # m, camera distance of the handheld crops (as that config's renders)
 
 
 def surface_metrics(pred: trimesh.Trimesh, gt: trimesh.Trimesh, n: int = 10000, taus=(0.01, 0.05),
@@ -99,26 +104,39 @@ def evaluate_training(prior: ShapePrior, count: int, resolution: int = 64) -> li
     return rows
 
 
-def heldout_views(shapes: list[TrainingShape], views: int, seed: int = 1234, size: int = 128):
-    """Rendered test crops: list of (shape index, crop (size, size, 3) uint8, mask (size, size) bool)."""
+def heldout_views(shapes: list[TrainingShape], views: int, seed: int = 1234, size: int = 128,
+                  handheld: CropAugmentation | None = None):
+    """Rendered test crops: list of (shape index, crop (size, size, 3) uint8, mask (size, size) bool).
+
+    handheld: instead of clean crops at the true box, crops of cameras 0.7-4.5 m away with these capture
+    conditions applied (`augment.augment_crop`; a seed stream the encoder's training never draws).
+    """
     from frodo_shape.crops import square_crop
     out = []
     for i, s in enumerate(shapes):
         rng = np.random.default_rng([seed, i])
         n = 0
         while n < views:
-            v = render_scene(s, rng)
-            if v is None:
-                continue
-            crop, cmask = square_crop(*v, size, 0.1)
+            if handheld is None:
+                v = render_scene(s, rng)
+                if v is None:
+                    continue
+                crop, cmask = square_crop(*v, size, 0.1)
+            else:
+                v = render_view(s, rng, distance=HANDHELD_DISTANCE)
+                if v is None:
+                    continue
+                crop, cmask = augment_crop(*v, rng, size, aug=handheld)
             out.append((i, crop, cmask))
             n += 1
     return out
 
 
-def evaluate_encoder(prior: ShapePrior, shapes: list[TrainingShape], views: int, resolution: int = 64) -> list[dict]:
-    """Single-view reconstruction of held-out shapes from rendered crops: per-view metrics."""
-    data = heldout_views(shapes, views)
+def evaluate_encoder(prior: ShapePrior, shapes: list[TrainingShape], views: int, resolution: int = 64,
+                     handheld: CropAugmentation | None = None) -> list[dict]:
+    """Single-view reconstruction of held-out shapes from rendered crops (clean, or with `handheld`
+    capture conditions): per-view metrics."""
+    data = heldout_views(shapes, views, handheld=handheld)
     codes = prior.encode(np.stack([d[1] for d in data]), np.stack([d[2] for d in data]))
     rows = []
     for (i, _, _), code in zip(data, codes):
@@ -269,6 +287,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--heldout', type=int, default=10, help='held-out procedural shapes per class')
     ap.add_argument('--train-count', type=int, default=5, help='training shapes per class to reconstruct (0: skip)')
     ap.add_argument('--views', type=int, default=3, help='rendered views per held-out shape (encoder)')
+    ap.add_argument('--handheld-views', type=int, default=0,
+                    help=f'views per held-out shape with the capture conditions of {HANDHELD_CONFIG}.yaml (encoder)')
     ap.add_argument('--fit-steps', type=int, default=400, help='code optimisation steps per held-out shape (0: skip)')
     ap.add_argument('--resolution', type=int, default=64)
     ap.add_argument('--threads', type=int, default=1)
@@ -301,6 +321,13 @@ def main(argv: list[str] | None = None) -> int:
         results['heldout_single_view'] = {'summary': _summary(rows), 'per_class': {
             c: _summary([r for r in rows if r['class'] == c]) for c in prior.class_names}, 'rows': rows}
         print('held-out single view', json.dumps(results['heldout_single_view']['summary']), flush=True)
+    if prior.encoder is not None and args.handheld_views > 0:
+        handheld = CropAugmentation.from_dict(load_config(HANDHELD_CONFIG)['augment'])
+        rows = evaluate_encoder(prior, held, args.handheld_views, args.resolution, handheld)
+        results['heldout_single_view_handheld'] = {'summary': _summary(rows), 'per_class': {
+            c: _summary([r for r in rows if r['class'] == c]) for c in prior.class_names}, 'rows': rows}
+        print('held-out single view, handheld crops', json.dumps(results['heldout_single_view_handheld']['summary']),
+              flush=True)
     if args.point_variants:
         results['point_decoder_variants'] = compare_point_decoders(prior, args.point_variants, args.point_steps)
         print('point decoder variants', json.dumps(results['point_decoder_variants']), flush=True)

@@ -28,6 +28,7 @@ import trimesh
 import yaml
 from tqdm import tqdm
 
+from frodo_shape.augment import CropAugmentation, augment_crop
 from frodo_shape.models import DecoderConfig, EncoderConfig, ImageEncoder, JointDecoder
 from frodo_shape.sdf_data import SamplingConfig, cached_samples
 
@@ -325,11 +326,14 @@ def _background(rng: np.random.Generator, size: int) -> np.ndarray:
     return (np.clip(img, 0, 1) * 255).astype(np.uint8)
 
 
-def render_scene(shape: TrainingShape, rng: np.random.Generator, render_size: int = 192):
+def render_scene(shape: TrainingShape, rng: np.random.Generator, render_size: int = 192,
+                 distance: tuple[float, float] = (1.3, 4.5)):
     """Render one random view of `shape` at metric scale, on a random floor, before a random wall/backdrop.
 
-    Random yaw, camera distance 1.3-4.5 m at height 0.9-1.9 m above the floor, focal length chosen so the
-    object spans 60-150 px, random materials (`Material.random`), light direction/intensity, ambient.
+    Random yaw, camera `distance` m away (default 1.3-4.5; never nearer than 1.1 x the shape's bounding
+    radius) at height 0.9-1.9 m above the floor, focal length chosen so the object spans 60-150 px (a near
+    camera thus has a wide field of view: strong perspective, as at handheld range), random materials
+    (`Material.random`), light direction/intensity, ambient.
     Returns (rgb (S, S, 3) uint8, mask (S, S) bool, box (4,) x0, y0, x1, y1) or None when (almost) invisible.
     """
     from frodo_common.geometry import look_at
@@ -350,7 +354,8 @@ def render_scene(shape: TrainingShape, rng: np.random.Generator, render_size: in
         wall.apply_translation((-(radius + rng.uniform(0.3, 2.0)), 0, z_floor + 3))
         wall.apply_transform(trimesh.transformations.rotation_matrix(rng.uniform(0, 2 * np.pi), (0, 0, 1)))
         objects.append(RenderObject(wall, Material.random(rng), label=0))
-    dist, cam_h, az = rng.uniform(1.3, 4.5), rng.uniform(0.9, 1.9), rng.uniform(0, 2 * np.pi)
+    dist = rng.uniform(max(distance[0], 1.1 * radius), max(distance[1], 1.1 * radius))
+    cam_h, az = rng.uniform(0.9, 1.9), rng.uniform(0, 2 * np.pi)
     eye = np.array([dist * np.cos(az), dist * np.sin(az), z_floor + cam_h])
     target = rng.normal(scale=0.1 * radius, size=3)
     f = rng.uniform(60, 150) * np.linalg.norm(eye - target) / (2 * radius)
@@ -368,14 +373,15 @@ def render_scene(shape: TrainingShape, rng: np.random.Generator, render_size: in
     return res.rgb, mask, np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], dtype=np.float64)
 
 
-def render_view(shape: TrainingShape, rng: np.random.Generator, crop_size: int = 160, context: float = 1.6):
+def render_view(shape: TrainingShape, rng: np.random.Generator, crop_size: int = 160, context: float = 1.6,
+                distance: tuple[float, float] = (1.3, 4.5)):
     """`render_scene` cut to a square context window of `context` x the box's longer side, resized to crop_size.
 
     Returns (image (crop_size, crop_size, 3) uint8, mask (crop_size, crop_size) bool, box (4,) float32 in crop
     pixels) or None.
     """
     from frodo_shape.crops import square_crop
-    scene = render_scene(shape, rng)
+    scene = render_scene(shape, rng, distance=distance)
     if scene is None:
         return None
     rgb, mask, box = scene
@@ -387,8 +393,8 @@ def render_view(shape: TrainingShape, rng: np.random.Generator, crop_size: int =
 
 
 def render_set(shapes: list[TrainingShape], views_per_shape: int, seed: int, cache_path: Path | None = None,
-               progress: bool = True, crop_size: int = 160) -> RenderSet:
-    """`views_per_shape` random views of every shape (cached as npz at `cache_path`)."""
+               progress: bool = True, crop_size: int = 160, distance: tuple[float, float] = (1.3, 4.5)) -> RenderSet:
+    """`views_per_shape` random views of every shape, cameras `distance` m away (cached as npz at `cache_path`)."""
     if cache_path is not None and cache_path.exists():
         with np.load(cache_path) as f:
             return RenderSet(f['images'], f['masks'], f['boxes'], f['shape_index'])
@@ -397,7 +403,7 @@ def render_set(shapes: list[TrainingShape], views_per_shape: int, seed: int, cac
         rng = np.random.default_rng([seed, i])
         n = 0
         while n < views_per_shape:
-            v = render_view(shape, rng, crop_size=crop_size)
+            v = render_view(shape, rng, crop_size=crop_size, distance=distance)
             if v is None:
                 continue
             imgs.append(v[0]), masks.append(v[1]), boxes.append(v[2]), index.append(i)
@@ -409,31 +415,6 @@ def render_set(shapes: list[TrainingShape], views_per_shape: int, seed: int, cac
         np.savez(tmp, images=rs.images, masks=rs.masks, boxes=rs.boxes, shape_index=rs.shape_index)
         tmp.replace(cache_path)
     return rs
-
-
-def augment_crop(image: np.ndarray, mask: np.ndarray, box: np.ndarray, rng: np.random.Generator, size: int = 128,
-                 margin: float = 0.1, jitter: float = 0.08):
-    """A perturbed detection crop (paper Sec. 4.2): jittered box, square crop, resolution and colour noise.
-
-    image (S, S, 3) uint8, mask (S, S) bool, box (4,) -> (crop (size, size, 3) uint8, mask (size, size) bool).
-    """
-    import cv2
-    from frodo_shape.crops import square_crop
-    w, h = box[2] - box[0], box[3] - box[1]
-    b = box + rng.normal(scale=jitter, size=4) * np.array([w, h, w, h])
-    crop, cmask = square_crop(image, mask, b, size, margin)
-    if rng.uniform() < 0.5:  # lower effective resolution (small detections are upsampled in the pipeline)
-        low = int(rng.integers(40, size))
-        crop = cv2.resize(cv2.resize(crop, (low, low), interpolation=cv2.INTER_AREA), (size, size),
-                          interpolation=cv2.INTER_LINEAR)
-    if rng.uniform() < 0.3:  # imperfect instance masks
-        k = np.ones((3, 3), np.uint8)
-        op = cv2.erode if rng.uniform() < 0.5 else cv2.dilate
-        cmask = op(cmask.astype(np.uint8), k, iterations=int(rng.integers(1, 3))).astype(bool)
-    x = crop.astype(np.float32)
-    x = (x - x.mean()) * rng.uniform(0.7, 1.3) + x.mean() * rng.uniform(0.7, 1.3)
-    x = x * rng.uniform(0.9, 1.1, 3) + rng.normal(scale=3.0, size=x.shape)
-    return np.clip(x, 0, 255).astype(np.uint8), cmask
 
 
 def encoder_input(crops: np.ndarray, masks: np.ndarray | None, size: int, in_channels: int) -> torch.Tensor:
@@ -475,8 +456,12 @@ def train_encoder(config: dict, prior_dir: str | Path, out_dir: str | Path | Non
         raise ValueError(f'the shapes given do not match the prior {prior_dir} (shapes.yaml lists {len(names)} shapes); '
                          'pass the same --meshes/--class used for `frodo train decoder`')
     rc = config.get('renders', {})
-    cache = out / 'cache' / f"renders_v{rc.get('views_per_shape', 24)}_s{seed}_n{len(shapes)}.npz"
-    rs = render_set(shapes, int(rc.get('views_per_shape', 24)), seed, cache, progress, int(rc.get('crop_size', 160)))
+    distance = tuple(float(d) for d in rc.get('distance', (1.3, 4.5)))
+    near = '' if distance == (1.3, 4.5) else f'_d{distance[0]:g}-{distance[1]:g}'
+    cache = out / 'cache' / f"renders_v{rc.get('views_per_shape', 24)}_s{seed}_n{len(shapes)}{near}.npz"
+    rs = render_set(shapes, int(rc.get('views_per_shape', 24)), seed, cache, progress, int(rc.get('crop_size', 160)),
+                    distance)
+    aug = CropAugmentation.from_dict(config.get('augment'))
 
     ecfg = EncoderConfig.from_dict(config.get('encoder'))
     ecfg.code_dim = codes.shape[1]
@@ -515,7 +500,8 @@ def train_encoder(config: dict, prior_dir: str | Path, out_dir: str | Path | Non
             g['lr'] = lr * (1 - step / total_steps) ** power
         rng = np.random.default_rng([seed, step])
         views = rng.integers(0, len(rs.images), B)
-        crops, masks = zip(*(augment_crop(rs.images[v], rs.masks[v], rs.boxes[v], rng, ecfg.input_size) for v in views))
+        crops, masks = zip(*(augment_crop(rs.images[v], rs.masks[v], rs.boxes[v], rng, ecfg.input_size, aug=aug)
+                             for v in views))
         masks = np.stack(masks)
         x = encoder_input(np.stack(crops), masks, ecfg.input_size, ecfg.in_channels)
         if ecfg.in_channels == 4:
