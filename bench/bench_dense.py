@@ -6,7 +6,8 @@
 `timing`: one object (a prior chair rendered from N cameras on a circle, colour + masks), seconds per dense
 iteration and for the whole stage, plus the sparse stage for reference.
 
-`stages` (paper Table 3 analogue; with --ablation also Table 2): the back end alone, on contract bags with
+`stages` (paper Table 3 analogue; with --ablation also Table 2; --fused-only stops after fusion, to compare
+encoders: `--prior DIR`; `--code oracle` starts the optimiser from the true shape's code instead of the encoder's): the back end alone, on contract bags with
 ground truth. Association is an oracle (each instance mask of /camera/instances is matched to its ground-truth
 object, `frodo_association.evaluate.scene_from_bag`), and each object's 3D box is the ground-truth box
 perturbed (centre N(0, 5 cm), size x U(0.9, 1.1), yaw + U(-10, 10) deg; seeded): what is measured is what the
@@ -144,11 +145,31 @@ def _objects_of_bag(path: Path, prior, n_views: int, rng):
         # ground truth mesh of this object: the one of its class nearest to the box centre
         cands = [g for g in gt if g.class_name == name]
         g = min(cands, key=lambda e: np.linalg.norm(e.mesh.bounds.mean(0) - obj.center))
-        out.append({'class': name, 'gt_points': sample_surface(g.mesh, 10000),
+        out.append({'class': name, 'gt_points': sample_surface(g.mesh, 10000), 'gt_id': g.id, 'gt_mesh': g.mesh,
                     'box': _perturbed_box((obj.center, obj.size, obj.yaw), rng), 'sparse_views': sviews,
                     'dense_views': dviews, 'codes': prior.encode(np.stack(crops), np.stack(masks)), 'slam': slam,
                     'has_depth': bool(depths)})
     return out
+
+
+def oracle_code(prior, bag: Path, gt_id: int, gt_mesh, steps: int = 400) -> tuple[np.ndarray, dict]:
+    """The code of the object's true shape as far as the prior can express it: the ground-truth mesh brought
+    to its canonical frame with the true pose of the bag's `.gt.json` sidecar (`frodo synth`,
+    `eval_sets build`), then an auto-decoder fit to its SDF samples (`ShapePrior.fit_sdf`). Returns the code
+    and the fit's score in the object frame (how well the prior expresses this shape at all)."""
+    from frodo_datasets.shapes.canonical import normalise
+    from frodo_datasets.synth import sidecar_path
+    from frodo_shape.sdf_data import SamplingConfig, sample_sdf
+    sidecar = sidecar_path(bag)
+    if not sidecar.is_file():
+        raise SystemExit(f'--code oracle needs the true poses of {sidecar} (bags made by frodo synth / eval_sets build)')
+    poses = {o['id']: np.asarray(o['T_world_object']) for o in json.loads(sidecar.read_text())['scene']['objects']}
+    canonical = gt_mesh.copy().apply_transform(np.linalg.inv(poses[gt_id]))
+    normalised, scale = normalise(canonical)
+    samples = sample_sdf(normalised, SamplingConfig(), seed=gt_id)
+    code = prior.fit_sdf(samples.points, samples.sdf, steps=steps, seed=gt_id)
+    fitted = prior.mesh(code, resolution=64).apply_scale(scale)
+    return code, _score(fitted, sample_surface(normalised.apply_scale(scale), 10000))
 
 
 ABLATION = {  # name: (sparse overrides, dense overrides)
@@ -160,7 +181,7 @@ ABLATION = {  # name: (sparse overrides, dense overrides)
 
 
 def stages(args) -> None:
-    prior = ShapePrior.load('furniture', device=args.device)
+    prior = ShapePrior.load(args.prior, device=args.device)
     sparse_base = json.loads(args.sparse) if args.sparse else {}
     dense_base = json.loads(args.dense) if args.dense else {}
     variants = ABLATION if args.ablation else {'all': ({}, {})}
@@ -178,7 +199,12 @@ def stages(args) -> None:
                 T, _, _ = place_from_box(mesh, centre, size, yaw)
                 row[f'fused_{fusion}'] = _score(mesh.copy().apply_transform(T), o['gt_points'])
             code = fuse_mean(o['codes'])
-            for name, (s_over, d_over) in variants.items():
+            if args.code == 'oracle':
+                code, row['oracle_fit'] = oracle_code(prior, Path(bag), o['gt_id'], o['gt_mesh'])
+                mesh = prior.mesh(code, resolution=64)
+                T, _, _ = place_from_box(mesh, centre, size, yaw)
+                row['fused_oracle'] = _score(mesh.copy().apply_transform(T), o['gt_points'])
+            for name, (s_over, d_over) in ({} if args.fused_only else variants).items():
                 scfg = SparseConfig(**{'max_views': args.views, **sparse_base, **s_over})
                 t0 = time.perf_counter()
                 colour = ViewBatch(select_views(o['dense_views'], scfg.max_views)) if scfg.w_photometric > 0 else None
@@ -230,6 +256,13 @@ def main(argv=None) -> int:
     s.add_argument('--seed', type=int, default=0)
     s.add_argument('--no-support', action='store_true', help='no floor / class height priors (support.py)')
     s.add_argument('--json', default='')
+    s.add_argument('--prior', default='furniture', help="shipped prior name or prior folder (default 'furniture')")
+    s.add_argument('--code', choices=('encoder', 'oracle'), default='encoder',
+                   help="start the sparse stage from the encoders' mean code (default) or from the true shape's code "
+                        "(auto-decoder fit to the ground-truth mesh; needs the bag's .gt.json sidecar): is it the start "
+                        "or the energy that limits the result?")
+    s.add_argument('--fused-only', action='store_true',
+                   help='score the fused encoder codes only (no sparse / dense stage): an encoder comparison')
     for p in (t, s):
         p.add_argument('--threads', type=int, default=1)
         p.add_argument('--device', default='cpu')

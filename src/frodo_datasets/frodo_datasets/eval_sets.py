@@ -21,7 +21,8 @@ tables, clutter on tables), `masks` (detector-like mask errors), `drift` (pose n
 (SLAM points only on textured surfaces, sparser and noisier), `camera` (exposure, vignetting, sensor noise,
 ambient occlusion, soft shadows, specular highlights).
 
-Bags are not committed; `build` regenerates them deterministically (same seed -> same scene and frames).
+Bags are not committed; `build` regenerates them deterministically (same seed -> same scene and frames),
+each with its `.gt.json` sidecar (true object and camera poses; never read by the graph).
 `run` calls `frodo run` on every bag that has no result yet (results/<variant>/<scene>.json, so an
 interrupted run keeps what it finished) and scores it with the contract protocol; `table` pools them:
 recall, false positives per scene, median centre error, mean CD and F1@5cm of the matched objects.
@@ -42,7 +43,7 @@ from typing import Callable
 import numpy as np
 
 from frodo_datasets.realcapture import preset_kwargs
-from frodo_datasets.synth import SynthConfig, synthesize
+from frodo_datasets.synth import SynthConfig, sidecar_path, synthesize
 
 CLASSES = ('dining table', 'chair', 'chair')  # cycled: 3 objects = 1 table + 2 chairs, 4 = 2 + 2
 
@@ -130,7 +131,8 @@ def build(eval_set: EvalSet, out: Path, variants: list[str], scenes: str | None 
                 path.parent.mkdir(parents=True, exist_ok=True)
                 started = time.monotonic()
                 tmp = path.with_suffix('.partial.mcap')
-                result = synthesize(scene_config(eval_set, seed, n, variant), tmp, sidecar=False)
+                result = synthesize(scene_config(eval_set, seed, n, variant), tmp)
+                sidecar_path(tmp).rename(sidecar_path(path))  # true poses: e.g. bench_dense --code oracle
                 tmp.rename(path)
                 print(f'{path}: {len(result.scene.objects)} objects ('
                       + ', '.join(f'{o.class_name}/{o.family}' for o in result.scene.objects)
