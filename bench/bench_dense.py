@@ -7,12 +7,13 @@
 iteration and for the whole stage, plus the sparse stage for reference.
 
 `stages` (paper Table 3 analogue; with --ablation also Table 2; --fused-only stops after fusion, to compare
-encoders: `--prior DIR`; `--code oracle` starts the optimiser from the true shape's code instead of the encoder's): the back end alone, on contract bags with
-ground truth. Association is an oracle (each instance mask of /camera/instances is matched to its ground-truth
-object, `frodo_association.evaluate.scene_from_bag`), and each object's 3D box is the ground-truth box
-perturbed (centre N(0, 5 cm), size x U(0.9, 1.1), yaw + U(-10, 10) deg; seeded): what is measured is what the
-optimiser gets out of the same views, not the front end. Per object, up to `--views` (35) views spread over
-the sequence; codes from the shipped encoder on square crops; then
+encoders: `--prior DIR`; `--code oracle` starts the optimiser from the true shape's code instead of the
+encoders'): the back end alone, on contract bags with ground truth. Association is an oracle (each instance
+mask of /camera/instances is matched to its ground-truth object, `frodo_association.evaluate.scene_from_bag`),
+and each object's 3D box is the ground-truth box perturbed (centre N(0, 5 cm), size x U(0.9, 1.1), yaw
++ U(-10, 10) deg; seeded): what is measured is what the optimiser gets out of the same views, not the front
+end. Per object, up to `--views` (35) views spread over the sequence; codes from the shipped encoder (or
+`--prior`'s) on square crops; then
   vote fusion -> mean fusion (fused stage: box-fit placement) -> sparse (from the mean code) -> dense,
 each scored against the ground-truth mesh with the contract metrics (CD cm, ACC/COMP/F1 at 5 cm).
 --ablation adds, for sparse and sparse+dense: Es+Er, +Ep, +Eg (landmarks; and depth in the dense stage when
@@ -152,7 +153,7 @@ def _objects_of_bag(path: Path, prior, n_views: int, rng):
     return out
 
 
-def oracle_code(prior, bag: Path, gt_id: int, gt_mesh, steps: int = 400) -> tuple[np.ndarray, dict]:
+def oracle_code(prior, bag: Path, gt_id: int, gt_mesh, steps: int = 400):
     """The code of the object's true shape as far as the prior can express it: the ground-truth mesh brought
     to its canonical frame with the true pose of the bag's `.gt.json` sidecar (`frodo synth`,
     `eval_sets build`), then an auto-decoder fit to its SDF samples (`ShapePrior.fit_sdf`). Returns the code
@@ -162,7 +163,8 @@ def oracle_code(prior, bag: Path, gt_id: int, gt_mesh, steps: int = 400) -> tupl
     from frodo_shape.sdf_data import SamplingConfig, sample_sdf
     sidecar = sidecar_path(bag)
     if not sidecar.is_file():
-        raise SystemExit(f'--code oracle needs the true poses of {sidecar} (bags made by frodo synth / eval_sets build)')
+        raise SystemExit(f'--code oracle needs the true poses of {sidecar} '
+                         '(bags made by frodo synth / eval_sets build)')
     poses = {o['id']: np.asarray(o['T_world_object']) for o in json.loads(sidecar.read_text())['scene']['objects']}
     canonical = gt_mesh.copy().apply_transform(np.linalg.inv(poses[gt_id]))
     normalised, scale = normalise(canonical)
@@ -258,9 +260,9 @@ def main(argv=None) -> int:
     s.add_argument('--json', default='')
     s.add_argument('--prior', default='furniture', help="shipped prior name or prior folder (default 'furniture')")
     s.add_argument('--code', choices=('encoder', 'oracle'), default='encoder',
-                   help="start the sparse stage from the encoders' mean code (default) or from the true shape's code "
-                        "(auto-decoder fit to the ground-truth mesh; needs the bag's .gt.json sidecar): is it the start "
-                        "or the energy that limits the result?")
+                   help="start the sparse stage from the encoders' mean code (default) or from the true shape's "
+                        "code (auto-decoder fit to the ground-truth mesh; needs the bag's .gt.json sidecar): is it "
+                        "the start or the energy that limits the result?")
     s.add_argument('--fused-only', action='store_true',
                    help='score the fused encoder codes only (no sparse / dense stage): an encoder comparison')
     for p in (t, s):

@@ -98,7 +98,8 @@ def test_recovers_a_box_30cm_off_and_twice_or_half_the_size(prior, scene, shift,
     assert recovered(centre_err, scale), (centre_err, scale, res.placement)
     # the box-only initialisation (the previous behaviour) does not recover by the same standard: the placement
     # search is what does (box-only ends 9-10 cm / x1.25 off at (0.3, 2.0), depending on the CPU's float kernels)
-    old = refine(prior, scene['code'], wrong, scene['views'], scene['slam'], SparseConfig(seed=0, placement_search=False))
+    old = refine(prior, scene['code'], wrong, scene['views'], scene['slam'],
+                 SparseConfig(seed=0, placement_search=False))
     old_err, old_scale = _errors(prior, old, scene)
     assert not recovered(old_err, old_scale), (old_err, old_scale)
     assert res.energies['total'] < old.energies['total']

@@ -36,7 +36,7 @@ from frodo_shape.augment import CropAugmentation, augment_crop
 from frodo_shape.train import TrainingShape, library_shapes, load_config, render_scene, render_view
 
 HELDOUT_SEED = 7919  # library seed of the held-out shapes (training priors use library_seed 0)
-HANDHELD_CONFIG = 'furniture_encoder_handheld'  # its `augment:` section: the capture conditions of --handheld-views
+HANDHELD_CONFIG = 'furniture_encoder_handheld'  # its `augment:` section: the conditions of --handheld-views
 HANDHELD_DISTANCE = (0.7, 4.5)  # m, camera distance of the handheld crops (as that config's renders)
 
 

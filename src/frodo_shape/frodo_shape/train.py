@@ -330,8 +330,8 @@ def render_scene(shape: TrainingShape, rng: np.random.Generator, render_size: in
                  distance: tuple[float, float] = (1.3, 4.5)):
     """Render one random view of `shape` at metric scale, on a random floor, before a random wall/backdrop.
 
-    Random yaw, camera `distance` m away (default 1.3-4.5; never nearer than 1.1 x the shape's bounding
-    radius) at height 0.9-1.9 m above the floor, focal length chosen so the object spans 60-150 px (a near
+    Random yaw, camera `distance` m away (default 1.3-4.5; a range starting nearer than 1.3 m is kept beyond
+    1.1 x the shape's bounding radius) at height 0.9-1.9 m above the floor, focal length chosen so the object spans 60-150 px (a near
     camera thus has a wide field of view: strong perspective, as at handheld range), random materials
     (`Material.random`), light direction/intensity, ambient.
     Returns (rgb (S, S, 3) uint8, mask (S, S) bool, box (4,) x0, y0, x1, y1) or None when (almost) invisible.
@@ -354,7 +354,9 @@ def render_scene(shape: TrainingShape, rng: np.random.Generator, render_size: in
         wall.apply_translation((-(radius + rng.uniform(0.3, 2.0)), 0, z_floor + 3))
         wall.apply_transform(trimesh.transformations.rotation_matrix(rng.uniform(0, 2 * np.pi), (0, 0, 1)))
         objects.append(RenderObject(wall, Material.random(rng), label=0))
-    dist = rng.uniform(max(distance[0], 1.1 * radius), max(distance[1], 1.1 * radius))
+    # a near range keeps the camera outside the object; ranges from 1.3 m are drawn as the shipped encoder's were
+    near = max(distance[0], 1.1 * radius) if distance[0] < 1.3 else distance[0]
+    dist = rng.uniform(near, max(distance[1], near))
     cam_h, az = rng.uniform(0.9, 1.9), rng.uniform(0, 2 * np.pi)
     eye = np.array([dist * np.cos(az), dist * np.sin(az), z_floor + cam_h])
     target = rng.normal(scale=0.1 * radius, size=3)
