@@ -56,16 +56,16 @@ def test_topic_selection_remap_ground_truth_and_clock(tmp_path, session):
     player = Player(session.node, tmp_path / 'a.mcap', rate=0, topics=[topics.POSE, topics.GROUND_TRUTH],
                     remaps=parse_remaps(['/camera/pose:=/robot/pose']), clock=True, progress=False)
     assert sorted(player.output_topics) == [topics.GROUND_TRUTH, '/robot/pose']
-    assert wait_until(lambda: session.node.count_subscribers('/clock') > 0, 5)
+    assert wait_until(lambda: session.node.count_subscribers('/clock') > 0, 20)
     stats = player.play()
     assert stats.published == {'/robot/pose': 3, topics.GROUND_TRUTH: 1}
-    assert wait_until(lambda: len(clocks) == 3, 5)
+    assert wait_until(lambda: len(clocks) == 3, 20)
     # Ground truth was latched in the bag: it is republished transient local, so a late joiner gets it.
     infos = session.node.get_publishers_info_by_topic(topics.GROUND_TRUTH)
     assert infos[0].qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
     late = []
     session.node.create_subscription(MarkerArray, topics.GROUND_TRUTH, late.append, topics.LATCHED_QOS)
-    assert wait_until(lambda: len(late) == 1, 5)
+    assert wait_until(lambda: len(late) == 1, 20)
 
 
 def test_truncated_bag_plays_what_is_readable(tmp_path, capsys):
@@ -108,7 +108,7 @@ def test_wait_for_subscribers_reports_unmatched_topics(tmp_path, session):
     assert set(player.wait_for_subscribers(0.3)) == {topics.IMAGE, topics.CAMERA_INFO, topics.POSE}
     assert time.monotonic() - started < 1.0
     session.node.create_subscription(Image, topics.IMAGE, lambda _: None, topics.FRAME_QOS)
-    assert wait_until(lambda: player.unmatched_topics([topics.IMAGE]) == [], 5)
+    assert wait_until(lambda: player.unmatched_topics([topics.IMAGE]) == [], 20)
 
 
 def test_wait_for_subscribers_settles_until_matches_stop_changing(tmp_path, session):
@@ -151,7 +151,7 @@ def test_rate0_with_backpressure_stays_within_the_backlog_of_a_slow_reader(tmp_p
 
     session.node.create_subscription(Image, topics.IMAGE, slow_reader, topics.FRAME_QOS)
     player = Player(session.node, tmp_path / 'a.mcap', rate=0, topics=[topics.IMAGE], progress=False)
-    assert wait_until(lambda: session.node.count_subscribers(topics.IMAGE) > 0, 5)
+    assert wait_until(lambda: session.node.count_subscribers(topics.IMAGE) > 0, 20)
 
     def frames_taken():
         ahead.append(player._images_sent - len(taken))

@@ -36,11 +36,11 @@ def test_recorder_keeps_stamps_and_qos(tmp_path):
         latched.publish(MarkerArray())  # before the recorder exists: caught through transient local
         poses = node.create_publisher(PoseStamped, topics.POSE, topics.FRAME_QOS)
         recorder = Recorder(node, tmp_path / 'rec.mcap', [topics.POSE, topics.OBJECTS])
-        assert wait_until(lambda: poses.get_subscription_count() == 1, 5)
+        assert wait_until(lambda: poses.get_subscription_count() == 1, 20)
         before = time.time_ns()
         for stamp in stamps:
             poses.publish(conv.make_pose_stamped(np.eye(4), stamp, 'world'))
-        assert wait_until(lambda: recorder.counts[topics.POSE] == 5 and recorder.counts[topics.OBJECTS] == 1, 5)
+        assert wait_until(lambda: recorder.counts[topics.POSE] == 5 and recorder.counts[topics.OBJECTS] == 1, 20)
         recorder.close()
     reader = BagReader(tmp_path / 'rec.mcap')
     assert not reader.problems
