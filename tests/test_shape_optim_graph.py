@@ -127,7 +127,9 @@ def test_shape_and_optimiser_nodes_reconstruct_an_object_from_the_demo_bag():
         tracks_pub.publish(MarkerArray(markers=[nan_box, good_box]))
         assert spin_until(lambda: objects and any(m.id == OBJECT_ID for m in objects[-1].markers)
                           and status('optim_node').get('state') == 'idle'
-                          and status('optim_node').get('dense_objects') == '1', timeout=180.0), status('optim_node')
+                          and status('optim_node').get('dense_objects') == '1'
+                          and states and 'dense' in {STAGES[s] for s in conv.cloud_to_table(states[-1])['stage']},
+                          timeout=180.0), status('optim_node')
         assert int(status('optim_node')['errors']) >= 1       # the NaN box
         mesh_marker = next(m for m in objects[-1].markers if m.id == OBJECT_ID)
         assert mesh_marker.type == Marker.TRIANGLE_LIST and mesh_marker.header.frame_id == 'world'
