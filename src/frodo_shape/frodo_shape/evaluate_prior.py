@@ -36,8 +36,7 @@ from frodo_shape.augment import CropAugmentation, augment_crop
 from frodo_shape.train import TrainingShape, library_shapes, load_config, render_scene, render_view
 
 HELDOUT_SEED = 7919  # library seed of the held-out shapes (training priors use library_seed 0)
-HANDHELD_CONFIG = 'furniture_encoder_handheld'  # its `augment:` section: the conditions of --handheld-views
-HANDHELD_DISTANCE = (0.7, 4.5)  # m, camera distance of the handheld crops (as that config's renders)
+HANDHELD_CONFIG = 'furniture_encoder_handheld'  # its renders' distance and `augment:`: the --handheld-views crops
 
 
 def surface_metrics(pred: trimesh.Trimesh, gt: trimesh.Trimesh, n: int = 10000, taus=(0.01, 0.05),
@@ -105,10 +104,10 @@ def evaluate_training(prior: ShapePrior, count: int, resolution: int = 64) -> li
 
 
 def heldout_views(shapes: list[TrainingShape], views: int, seed: int = 1234, size: int = 128,
-                  handheld: CropAugmentation | None = None):
+                  handheld: CropAugmentation | None = None, distance: tuple[float, float] = (0.7, 4.5)):
     """Rendered test crops: list of (shape index, crop (size, size, 3) uint8, mask (size, size) bool).
 
-    handheld: instead of clean crops at the true box, crops of cameras 0.7-4.5 m away with these capture
+    handheld: instead of clean crops at the true box, crops of cameras `distance` m away with these capture
     conditions applied (`augment.augment_crop`; a seed stream the encoder's training never draws).
     """
     from frodo_shape.crops import square_crop
@@ -123,7 +122,7 @@ def heldout_views(shapes: list[TrainingShape], views: int, seed: int = 1234, siz
                     continue
                 crop, cmask = square_crop(*v, size, 0.1)
             else:
-                v = render_view(s, rng, distance=HANDHELD_DISTANCE)
+                v = render_view(s, rng, distance=distance)
                 if v is None:
                     continue
                 crop, cmask = augment_crop(*v, rng, size, aug=handheld)
@@ -133,10 +132,11 @@ def heldout_views(shapes: list[TrainingShape], views: int, seed: int = 1234, siz
 
 
 def evaluate_encoder(prior: ShapePrior, shapes: list[TrainingShape], views: int, resolution: int = 64,
-                     handheld: CropAugmentation | None = None) -> list[dict]:
+                     handheld: CropAugmentation | None = None,
+                     distance: tuple[float, float] = (0.7, 4.5)) -> list[dict]:
     """Single-view reconstruction of held-out shapes from rendered crops (clean, or with `handheld`
     capture conditions): per-view metrics."""
-    data = heldout_views(shapes, views, handheld=handheld)
+    data = heldout_views(shapes, views, handheld=handheld, distance=distance)
     codes = prior.encode(np.stack([d[1] for d in data]), np.stack([d[2] for d in data]))
     rows = []
     for (i, _, _), code in zip(data, codes):
@@ -322,8 +322,10 @@ def main(argv: list[str] | None = None) -> int:
             c: _summary([r for r in rows if r['class'] == c]) for c in prior.class_names}, 'rows': rows}
         print('held-out single view', json.dumps(results['heldout_single_view']['summary']), flush=True)
     if prior.encoder is not None and args.handheld_views > 0:
-        handheld = CropAugmentation.from_dict(load_config(HANDHELD_CONFIG)['augment'])
-        rows = evaluate_encoder(prior, held, args.handheld_views, args.resolution, handheld)
+        config = load_config(HANDHELD_CONFIG)
+        distance = tuple(float(d) for d in config['renders']['distance'])
+        rows = evaluate_encoder(prior, held, args.handheld_views, args.resolution,
+                                CropAugmentation.from_dict(config['augment']), distance)
         results['heldout_single_view_handheld'] = {'summary': _summary(rows), 'per_class': {
             c: _summary([r for r in rows if r['class'] == c]) for c in prior.class_names}, 'rows': rows}
         print('held-out single view, handheld crops', json.dumps(results['heldout_single_view_handheld']['summary']),
