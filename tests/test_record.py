@@ -36,7 +36,9 @@ def test_recorder_keeps_stamps_and_qos(tmp_path):
         latched.publish(MarkerArray())  # before the recorder exists: caught through transient local
         poses = node.create_publisher(PoseStamped, topics.POSE, topics.FRAME_QOS)
         recorder = Recorder(node, tmp_path / 'rec.mcap', [topics.POSE, topics.OBJECTS])
-        assert wait_until(lambda: poses.get_subscription_count() == 1, 20)
+        # matched both ways (>= 1: a participant another test left on this cycled domain may also listen)
+        assert wait_until(lambda: topics.POSE in recorder.recorded_topics and poses.get_subscription_count() >= 1
+                          and recorder.subscription(topics.POSE).get_publisher_count() >= 1, 20)
         before = time.time_ns()
         for stamp in stamps:
             poses.publish(conv.make_pose_stamped(np.eye(4), stamp, 'world'))

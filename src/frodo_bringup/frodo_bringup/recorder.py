@@ -96,6 +96,10 @@ class Recorder:
         """Topics subscribed so far."""
         return sorted(self._subscriptions)
 
+    def subscription(self, topic: str):
+        """The recorder's subscription of `topic` (None when not subscribed or its type is unknown)."""
+        return self._subscriptions.get(topic)
+
     def _is_wanted(self, topic: str) -> bool:
         if topic in self.wanted:
             return True
