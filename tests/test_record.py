@@ -29,29 +29,32 @@ def test_header_stamp_is_read_from_cdr_bytes():
 
 
 def test_recorder_keeps_stamps_and_qos(tmp_path):
+    # Topics of this test's own: test domains cycle, so a participant another test left alive may share
+    # the domain and publish (or listen) on the contract topics, changing counts and the negotiated QoS.
+    pose_topic, objects_topic = '/frodo_test_record/pose', '/frodo_test_record/objects'
     stamps = [1_700_000_000_000_000_000 + i * 50_000_000 for i in range(5)]
     with RosSession('frodo_test_recorder') as session:
         node = session.node
-        latched = node.create_publisher(MarkerArray, topics.OBJECTS, topics.LATCHED_QOS)
+        latched = node.create_publisher(MarkerArray, objects_topic, topics.LATCHED_QOS)
         latched.publish(MarkerArray())  # before the recorder exists: caught through transient local
-        poses = node.create_publisher(PoseStamped, topics.POSE, topics.FRAME_QOS)
-        recorder = Recorder(node, tmp_path / 'rec.mcap', [topics.POSE, topics.OBJECTS])
-        # matched both ways (>= 1: a participant another test left on this cycled domain may also listen)
-        assert wait_until(lambda: topics.POSE in recorder.recorded_topics and poses.get_subscription_count() >= 1
-                          and recorder.subscription(topics.POSE).get_publisher_count() >= 1, 20)
+        poses = node.create_publisher(PoseStamped, pose_topic, topics.FRAME_QOS)
+        recorder = Recorder(node, tmp_path / 'rec.mcap', [pose_topic, objects_topic])
+        assert wait_until(lambda: pose_topic in recorder.recorded_topics and poses.get_subscription_count() == 1
+                          and recorder.subscription(pose_topic).get_publisher_count() == 1, 20)
         before = time.time_ns()
         for stamp in stamps:
             poses.publish(conv.make_pose_stamped(np.eye(4), stamp, 'world'))
-        assert wait_until(lambda: recorder.counts[topics.POSE] == 5 and recorder.counts[topics.OBJECTS] == 1, 20)
+        wait_until(lambda: recorder.counts[pose_topic] == 5 and recorder.counts[objects_topic] == 1, 20)
+        assert dict(recorder.counts) == {pose_topic: 5, objects_topic: 1}
         recorder.close()
     reader = BagReader(tmp_path / 'rec.mcap')
     assert not reader.problems
-    assert [m.log_time_ns for m in reader.messages([topics.POSE])] == stamps
-    (objects,) = reader.messages([topics.OBJECTS])
+    assert [m.log_time_ns for m in reader.messages([pose_topic])] == stamps
+    (objects,) = reader.messages([objects_topic])
     assert objects.log_time_ns >= before - 5 * 10**9  # receive time (MarkerArray has no header)
     qos = offered_qos_texts(reader)
-    assert qos_from_offered(qos[topics.OBJECTS], topics.OBJECTS).durability == DurabilityPolicy.TRANSIENT_LOCAL
-    assert qos_from_offered(qos[topics.POSE], topics.POSE).durability == DurabilityPolicy.VOLATILE
+    assert qos_from_offered(qos[objects_topic], objects_topic).durability == DurabilityPolicy.TRANSIENT_LOCAL
+    assert qos_from_offered(qos[pose_topic], pose_topic).durability == DurabilityPolicy.VOLATILE
 
 
 @pytest.mark.parametrize('args, message', [
