@@ -212,12 +212,14 @@ def stages(args) -> None:
                 colour = ViewBatch(select_views(o['dense_views'], scfg.max_views)) if scfg.w_photometric > 0 else None
                 heights = None if args.no_support else class_height_range(o['class'])
                 sp = refine(prior, code, o['box'], o['sparse_views'], o['slam'], scfg, photometric=colour,
-                            floor_height=floor, height_range=heights, code_class=o['class'])
+                            floor_height=floor, height_range=heights, code_class=o['class'],
+                            neighbour_boxes=[n['box'] for n in objects if n is not o])
                 t_sparse = time.perf_counter() - t0
                 mesh = prior.mesh(sp.code, resolution=64)
                 row[f'sparse[{name}]'] = _score(mesh.copy().apply_transform(sp.T_world_object), o['gt_points'])
                 dcfg = DenseConfig(**{'max_views': args.views, **dense_base, **d_over})
-                dn = refine_dense(prior, sp.code, sp.T_world_object, o['dense_views'], o['slam'], o['box'], dcfg,
+                landmarks, region = (o['slam'], o['box']) if sp.landmarks is None else (sp.landmarks, None)
+                dn = refine_dense(prior, sp.code, sp.T_world_object, o['dense_views'], landmarks, region, dcfg,
                                   floor_height=floor, height_range=heights)
                 dmesh = prior.mesh(dn.code, resolution=64) if dn.improved else mesh
                 row[f'dense[{name}]'] = _score(dmesh.copy().apply_transform(dn.T_world_object), o['gt_points'])

@@ -40,7 +40,7 @@ from frodo_shape.prior import ShapePrior
 DEPTH_TOPICS = ('/camera/depth/image_raw',)
 
 
-def backend_inputs(bag: Path, recorded: Path, dense: bool, mask_samples: int = 96, crop: int = 96):
+def backend_inputs(bag: Path, recorded: Path, dense: bool, mask_samples: int = 96, crop: int = 96, fill_views: int = 8):
     """{object id: (class name, box, code, views, dense views)}, slam points (N, 3) of a recorded run."""
     camera_info, poses, images, depths, slam = None, {}, {}, {}, None
     for m in BagReader(bag).messages([topics.CAMERA_INFO, topics.POSE, topics.SLAM_POINTS, topics.IMAGE, *DEPTH_TOPICS]):
@@ -112,7 +112,8 @@ def backend_inputs(bag: Path, recorded: Path, dense: bool, mask_samples: int = 9
         if oid not in codes or codes[oid][1] < 2:
             continue
         known = category_by_id(codes[oid][0])
-        out[oid] = (known.name if known else ns, box, codes[oid][2], store.views_of(oid), dense_store.views_of(oid))
+        out[oid] = (known.name if known else ns, box, codes[oid][2], store.views_of(oid, fill_views),
+                    dense_store.views_of(oid, fill_views))
     return out, (slam[np.isfinite(slam).all(1)] if slam is not None and len(slam) else slam)
 
 
@@ -145,7 +146,8 @@ def main() -> None:
             preds['fused'].append(EvalObject(oid, name, fused.mesh_world))
             t0 = time.perf_counter()
             heights = None if args.no_height or name not in BY_NAME else BY_NAME[name].height_range
-            sp = refine(prior, code, box, views, slam, scfg, floor_height=floor, height_range=heights, code_class=name)
+            sp = refine(prior, code, box, views, slam, scfg, floor_height=floor, height_range=heights, code_class=name,
+                        neighbour_boxes=[o[1] for other, o in objects.items() if other != oid])
             t_sparse = time.perf_counter() - t0
             smesh = prior.mesh(sp.code, resolution=64) if sp.ok else None
             if smesh is None or len(smesh.faces) == 0:
@@ -158,7 +160,8 @@ def main() -> None:
                    'z_bottom': round(float(preds['sparse'][-1].mesh.bounds[0, 2]), 3),
                    'energies': {k: round(v, 4) for k, v in sp.energies.items()}, 'input_energy': round(sp.input_energy, 4)}
             if dense:
-                dn = refine_dense(prior, sp.code, sp.T_world_object, dviews, slam, box, dcfg, floor_height=floor,
+                landmarks, region = (slam, box) if sp.landmarks is None else (sp.landmarks, None)   # as optim_node
+                dn = refine_dense(prior, sp.code, sp.T_world_object, dviews, landmarks, region, dcfg, floor_height=floor,
                                   height_range=heights)
                 dmesh = prior.mesh(dn.code, resolution=64) if dn.improved else None
                 preds['dense'].append(EvalObject(oid, name, dmesh.copy().apply_transform(dn.T_world_object))

@@ -19,7 +19,8 @@ Per iteration:
      point, not once per ray sample (the paper's reason for the proxy volume: cost independent of views);
    - Ep, photometric (paper Eq. 5) on the proxy surface points, `photometric.photometric_energy`, with
      back-face and z-buffer visibility;
-   - Eg, geometric: SLAM landmarks near the object, |SDF| at the landmark in metres, truncated;
+   - Eg, geometric: SLAM landmarks of the object (`optim_node`: the sparse stage's visual-hull set,
+     `SparseResult.landmarks`), |SDF| at the landmark in metres, truncated;
    - Ed, registered depth (CONTRACT v1.1, beyond the paper): |SDF| at back-projected masked depth pixels,
      truncated;
    - Er, code regulariser as in the sparse stage;

@@ -80,6 +80,9 @@ PARAMS = (
               'start only when clearly better on common landmarks and silhouettes (README "Placement").'),
     ParamSpec('sparse_code_restarts', 4, 'Also start the sparse stage from the best of this many lowest-energy '
               'training codes of the object\'s class (beyond the paper; 0: off; README "Code freedom").'),
+    ParamSpec('sparse_landmark_filter', True, 'Only landmarks in the detections\' visual hull (on the masks in '
+              '>= 75 % of the views that see them) and in no smaller neighbour\'s box enter Eg, in the sparse and '
+              'the dense stage; false: every landmark near the box (the paper\'s setting; README "Landmarks").'),
     ParamSpec('support_w_floor', 0.05, 'Weight of the floor prior E_floor in the sparse and dense stages (beyond the '
               'paper: the lowest points on the floor estimated from the boxes and landmarks; support.py); 0 disables.'),
     ParamSpec('support_w_height', 1.0, 'Weight of the class height prior E_size in the sparse and dense stages (beyond '
@@ -354,6 +357,7 @@ class OptimNode(FrodoNode):
                             w_photometric=float(p['sparse_w_photometric']),
                             placement_search=bool(p['sparse_placement_search']),
                             code_restarts=int(p['sparse_code_restarts']), w_floor=float(p['support_w_floor']),
+                            landmark_filter=bool(p['sparse_landmark_filter']),
                             w_height=float(p['support_w_height']))
 
     def dense_config(self) -> DenseConfig:
@@ -435,22 +439,24 @@ class OptimNode(FrodoNode):
             self._publish()
         if not self.params['sparse_enabled']:
             return
-        sparse = self._sparse(estimate, code, box)
-        if sparse is None or not self.dense_on:
+        refined = self._sparse(estimate, code, box)
+        if refined is None or not self.dense_on:
             return
+        sparse, landmarks = refined
         with self.cond:
             due = (oid in self.force_dense or oid not in self.dense_views_used or not self.pending
                    or views >= float(self.params['dense_rerun_growth']) * self.dense_views_used[oid])
             if not due:
                 self.dense_stale.add(oid)
         if due:
-            self._dense(sparse, box, views)
+            self._dense(sparse, box, views, landmarks)
         else:
             self.count('dense_deferred')
 
-    def _sparse(self, fused: ObjectEstimate, code: np.ndarray, box) -> ObjectEstimate | None:
-        """Sparse stage of one object after its fused stage; publishes and returns the refined estimate (None
-        when it fails: the fused result stays, with the reason)."""
+    def _sparse(self, fused: ObjectEstimate, code: np.ndarray, box) -> tuple[ObjectEstimate, np.ndarray | None] | None:
+        """Sparse stage of one object after its fused stage; publishes and returns the refined estimate and the
+        landmarks it chose for the object (None with `sparse_landmark_filter` off), or None when it fails: the fused
+        result stays, with the reason."""
         config = self.sparse_config()
         with self.cond:
             fill = int(self.params['fill_views'])
@@ -458,10 +464,12 @@ class OptimNode(FrodoNode):
             colour = select_views(self.dense_store.views_of(fused.object_id, fill), config.max_views)
             slam = self.slam_points
             floor = support.scene_floor(self.tracks, slam)
+            neighbours = [b for oid, (_, b) in self.tracks.items() if oid != fused.object_id]
         t0 = time.perf_counter()
         photometric = ViewBatch(colour) if colour and config.w_photometric > 0 else None   # sparse runs on CPU
         result = refine(self.prior, code, box, views, slam, config, photometric=photometric, floor_height=floor,
-                        height_range=support.class_height_range(fused.class_name), code_class=fused.class_name)
+                        height_range=support.class_height_range(fused.class_name), code_class=fused.class_name,
+                        neighbour_boxes=neighbours)
         self.count('sparse_runs')
         if not result.ok:
             self.count('sparse_fallbacks')
@@ -490,11 +498,12 @@ class OptimNode(FrodoNode):
                                              f'{result.seconds:.2f}s')
         self.estimates[fused.object_id] = estimate
         self._publish()
-        return estimate
+        return estimate, result.landmarks
 
-    def _dense(self, sparse: ObjectEstimate, box, num_views: int) -> None:
+    def _dense(self, sparse: ObjectEstimate, box, num_views: int, landmarks: np.ndarray | None) -> None:
         """Dense stage after a successful sparse stage: publishes the dense estimate, or keeps the sparse one
-        (with the reason) when the dense result is not better or the stage cannot run."""
+        (with the reason) when the dense result is not better or the stage cannot run. landmarks: the sparse
+        stage's visual-hull landmarks of the object (None: those of the whole map near the box)."""
         oid = sparse.object_id
         with self.cond:
             views = self.dense_store.views_of(oid, int(self.params['fill_views']))
@@ -502,6 +511,8 @@ class OptimNode(FrodoNode):
             self.dense_views_used[oid] = num_views
             floor = support.scene_floor(self.tracks, slam)
         t0 = time.perf_counter()
+        if landmarks is not None:
+            slam, box = landmarks, None     # already the object's: no box selection
         result = refine_dense(self.prior, sparse.code, sparse.T_world_object, views, slam, box, self.dense_config(),
                               should_stop=lambda: self.stopping,   # shutdown does not wait for a whole dense stage
                               floor_height=floor, height_range=support.class_height_range(sparse.class_name))

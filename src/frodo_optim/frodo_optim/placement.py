@@ -115,27 +115,49 @@ def ray_centre(views, boxes: np.ndarray, border: np.ndarray, huber: float = 0.1)
     return centre if in_front.mean() > 0.5 else None
 
 
-def on_silhouettes(points: np.ndarray, views, batch, tolerance: float = 0.03, min_fraction: float = 0.75,
-                   min_views: int = 2) -> np.ndarray:
+def in_box(points: np.ndarray, center, size, yaw: float, margin: float = 0.0, floor_gap: float | None = None) -> np.ndarray:
+    """(N,) bool: points (N, 3) inside the upright box grown by `margin` metres (floor_gap: the bottom is raised by
+    this instead of lowered by the margin)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    d = np.asarray(points, dtype=np.float64) - np.asarray(center, dtype=np.float64)
+    local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]], 1)
+    half = np.asarray(size, dtype=np.float64) / 2
+    bottom = -half[2] + floor_gap if floor_gap is not None else -half[2] - margin
+    return (np.abs(local[:, 0]) < half[0] + margin) & (np.abs(local[:, 1]) < half[1] + margin) & \
+        (local[:, 2] > bottom) & (local[:, 2] < half[2] + margin)
+
+
+def on_silhouettes(points: np.ndarray, views, batch, neighbour_boxes=(), tolerance: float = 0.03,
+                   min_fraction: float = 0.75, min_views: int = 2) -> np.ndarray:
     """The landmarks (N, 3) -> (M, 3) that lie in the object's visual hull, independent of any box.
 
-    A landmark is kept when, of the views whose image it projects into (in front of the camera), at least
-    `min_views` see it and at least `min_fraction` put it on the detection's mask: distance-transform value
-    <= `tolerance` box diagonals inside the view's crop (unknown pixels, i.e. other detections, count as on
-    the mask). Floor, wall, table-top clutter and neighbour landmarks fall off the mask in most views.
+    A landmark is kept when, of the views that count for it, at least `min_views` do and at least `min_fraction`
+    put it on the detection's mask (distance-transform value <= `tolerance` box diagonals inside the view's crop).
+    A view counts when the landmark projects into its image, in front of the camera, except where it falls on
+    another detection (`View.other`): there the neighbour may simply hide it (a chair in front of a low table),
+    unless the landmark lies in a neighbour's box (`neighbour_boxes`, (centre, size, yaw)): then it is likely the
+    neighbour's own (a chair pushed under a table, seen through the table top from above), and the view counts
+    against it. Floor, wall, table-top clutter and neighbour landmarks fall off the mask in most views.
     """
     p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     p = p[np.isfinite(p).all(1)]
     if len(p) == 0:
         return p.astype(np.float32)
+    in_neighbour = np.zeros(len(p), bool)
+    for centre, size, yaw in neighbour_boxes:
+        in_neighbour |= in_box(p, centre, size, float(yaw))
     with torch.no_grad():
         uv, valid = batch.project(torch.as_tensor(p, dtype=torch.float32))                    # (V, N, 2), (V, N)
         wh = torch.as_tensor(np.array([v.image_size for v in views], dtype=np.float32))[:, None]
         in_image = valid & (uv >= 0).all(-1) & (uv < wh).all(-1)
         g = (uv - batch.crop_lo) / (batch.crop_hi - batch.crop_lo) * 2 - 1
+        in_crop = (g.abs() <= 1).all(-1)
         d = F.grid_sample(batch.dt, g[:, None], mode='bilinear', padding_mode='border', align_corners=False)[:, 0, 0]
-        on_mask = in_image & (g.abs() <= 1).all(-1) & (d <= tolerance)
-        seen, on = in_image.sum(0), on_mask.sum(0)
+        on_other = in_crop & (F.grid_sample(batch.other, g[:, None], mode='nearest', padding_mode='border',
+                                            align_corners=False)[:, 0, 0] > 0.5)
+        on_mask = in_image & in_crop & (d <= tolerance) & ~on_other
+        counted = in_image & (~on_other | torch.as_tensor(in_neighbour)[None])
+        seen, on = counted.sum(0), on_mask.sum(0)
         keep = (seen >= min_views) & (on >= min_fraction * seen)
     return p[keep.numpy()].astype(np.float32)
 

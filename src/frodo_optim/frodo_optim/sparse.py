@@ -14,7 +14,9 @@ detections in a bounded set of views:
   Pixels outside the image or covered by *other* detections are "unknown" (distance 0): a truncated
   or occluded object is not pulled into its visible part.
 - Eg (geometry, paper "Eg"): one-sided 3D chamfer from SLAM landmarks inside the object's box to the
-  surface points, truncated at `geometry_truncation` metres and divided by it.
+  surface points, truncated at `geometry_truncation` metres and divided by it. Beyond the paper
+  (`landmark_filter`): only those in the detections' visual hull (`placement.on_silhouettes`), the set
+  returned as `SparseResult.landmarks` for the dense stage.
 - Er (code regulariser, paper ||z||^2 / sigma^2): mean over dimensions of ((z - mu) / sigma)^2 with mu,
   sigma the per-dimension mean and spread of the prior's training codes (the paper's zero-mean prior,
   for codes that are not centred).
@@ -87,6 +89,8 @@ class SparseConfig:
     floor_tolerance: float = 0.05     # metres: E_floor = huber((bottom - floor) / floor_tolerance)
     w_height: float = 1.0             # E_size (support.py); needs refine(..., height_range=(lo, hi))
     code_restarts: int = 4            # also start from the best of the k lowest-energy training codes (0: off)
+    landmark_filter: bool = True      # every run uses only landmarks in the detections' visual hull (False: paper)
+    landmark_tolerance: float = 0.06  # box diagonals off the mask a landmark may project (placement.on_silhouettes)
     seed: int = 0
 
 
@@ -96,7 +100,9 @@ class View:
 
     mask_uv (M, 2) float32 pixels sampled on the mask; dt (DT_SIZE, DT_SIZE) float16 distance to the mask
     (units of the box diagonal, 0 on the mask and where unknown) over the crop `crop` = (u0, v0, u1, v1);
-    diag: detection box diagonal in pixels; image_size (width, height).
+    diag: detection box diagonal in pixels; image_size (width, height); other (DT_SIZE, DT_SIZE) bool: cells
+    on another detection (None: none), which the landmark selection (`placement.on_silhouettes`) tells apart
+    from the object's own mask.
     """
 
     K: np.ndarray
@@ -106,9 +112,10 @@ class View:
     crop: tuple[float, float, float, float]
     diag: float
     image_size: tuple[int, int]
+    other: np.ndarray | None = None
 
     def nbytes(self) -> int:
-        return self.mask_uv.nbytes + self.dt.nbytes + 200
+        return self.mask_uv.nbytes + self.dt.nbytes + (0 if self.other is None else self.other.nbytes) + 200
 
 
 @dataclass
@@ -131,6 +138,7 @@ class SparseResult:
     best_iteration: int = 0
     views: int = 0
     seconds: float = 0.0
+    landmarks: np.ndarray | None = None  # (N, 3) the visual-hull landmarks used (`landmark_filter`), for the dense stage
 
 
 # ------------------------------------------------------------------ view data
@@ -157,8 +165,10 @@ def view_from_mask(K, T_world_camera, mask: np.ndarray, n_samples: int = 128, un
     cx1, cy1 = int(min(w, math.ceil(crop[2]))), int(min(h, math.ceil(crop[3])))
     sub = mask[cy0:cy1, cx0:cx1]
     dist = distance_transform_edt(~sub).astype(np.float32) / max(diag, 1.0)
+    other_sub = None
     if unknown is not None:
-        dist[np.asarray(unknown, dtype=bool)[cy0:cy1, cx0:cx1] & ~sub] = 0.0
+        other_sub = np.asarray(unknown, dtype=bool)[cy0:cy1, cx0:cx1] & ~sub
+        dist[other_sub] = 0.0
     gu = crop[0] + (np.arange(DT_SIZE) + 0.5) * (crop[2] - crop[0]) / DT_SIZE
     gv = crop[1] + (np.arange(DT_SIZE) + 0.5) * (crop[3] - crop[1]) / DT_SIZE
     iu, iv = np.floor(gu).astype(int), np.floor(gv).astype(int)
@@ -166,7 +176,11 @@ def view_from_mask(K, T_world_camera, mask: np.ndarray, n_samples: int = 128, un
     dt = np.zeros((DT_SIZE, DT_SIZE), np.float32)          # outside the image: unknown
     ii, jj = np.nonzero(inside)
     dt[ii, jj] = dist[iv[ii] - cy0, iu[jj] - cx0]
-    return View(K, T, mask_uv, dt.astype(np.float16), tuple(float(c) for c in crop), diag, (int(w), int(h)))
+    other = None
+    if other_sub is not None and other_sub.any():
+        other = np.zeros((DT_SIZE, DT_SIZE), bool)
+        other[ii, jj] = other_sub[iv[ii] - cy0, iu[jj] - cx0]
+    return View(K, T, mask_uv, dt.astype(np.float16), tuple(float(c) for c in crop), diag, (int(w), int(h)), other)
 
 
 def select_views(views: list, max_views: int) -> list:
@@ -192,6 +206,8 @@ class _Batch:
         self.mask_uv = torch.as_tensor(np.stack([v.mask_uv for v in views]))      # (V, M, 2)
         self.mask_u, self.mask_v = self.mask_uv[..., 0].contiguous(), self.mask_uv[..., 1].contiguous()
         self.dt = torch.as_tensor(np.stack([v.dt for v in views]).astype(np.float32))[:, None]       # (V, 1, S, S)
+        self.other = torch.as_tensor(np.stack([np.zeros(v.dt.shape, bool) if v.other is None else v.other
+                                               for v in views]).astype(np.float32))[:, None]          # (V, 1, S, S)
         crop = np.array([v.crop for v in views], dtype=np.float32)
         self.crop_lo = torch.as_tensor(crop[:, :2])[:, None]                       # (V, 1, 2)
         self.crop_hi = torch.as_tensor(crop[:, 2:])[:, None]
@@ -258,13 +274,7 @@ def slam_points_near(points: np.ndarray | None, center, size, yaw: float, margin
         return np.zeros((0, 3), np.float32)
     p = np.asarray(points, dtype=np.float64)
     p = p[np.isfinite(p).all(1)]
-    c, s = math.cos(yaw), math.sin(yaw)
-    d = p - np.asarray(center, dtype=np.float64)
-    local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]], 1)
-    half = np.asarray(size, dtype=np.float64) / 2
-    keep = (np.abs(local[:, 0]) < half[0] + margin) & (np.abs(local[:, 1]) < half[1] + margin) & \
-           (local[:, 2] > -half[2] + 0.02) & (local[:, 2] < half[2] + margin)
-    return p[keep].astype(np.float32)
+    return p[placement.in_box(p, center, size, yaw, margin, floor_gap=0.02)].astype(np.float32)
 
 
 # ------------------------------------------------------------------ stage
@@ -295,7 +305,7 @@ def code_statistics(training_codes) -> tuple[torch.Tensor, torch.Tensor]:
 def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None = None,
            config: SparseConfig | None = None, init_yaw: float | None = None, photometric=None,
            floor_height: float | None = None, height_range: tuple[float, float] | None = None,
-           code_class: str | None = None) -> SparseResult:
+           code_class: str | None = None, neighbour_boxes=()) -> SparseResult:
     """Yaw search + joint code/pose optimisation of one object (paper Sec. 4.3).
 
     prior: anything with `decode_points(codes) -> (N, 2048, 3)` torch (differentiable) and `training_codes`.
@@ -305,7 +315,8 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
     photometric: optional `photometric.ViewBatch` of the object's colour views for Ep (weight w_photometric).
     floor_height: world z of the floor (`support.floor_height`) for E_floor; height_range: the class's metric
     height range (`Category.height_range`) for E_size; None: term off. code_class: the object's class; code
-    restarts (`code_restarts`) then draw only that class's training codes.
+    restarts (`code_restarts`) then draw only that class's training codes. neighbour_boxes: the other objects'
+    boxes (centre, size, yaw), for the landmark selection (`placement.on_silhouettes`).
     Never raises on bad input: returns the box placement with ok=False and a reason.
     """
     cfg = config or SparseConfig()
@@ -378,21 +389,27 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
             keep=cfg.placement_keep, seed=cfg.seed, floor_height=floor_height if use_floor else None,
             w_floor=cfg.w_floor, floor_tolerance=cfg.floor_tolerance,
             height_range=height_range if use_height else None, w_height=cfg.w_height)]
-    # landmarks. The box starts use those near the input box (the paper's setting, unchanged). Hypotheses and
-    # code restarts use one common set: those near the input box or the best hypothesis that lie in the
-    # detections' visual hull (placement.on_silhouettes), so that clutter, floor and neighbour points in a too
-    # large region do not favour the placement that covers them. Every run's end state is compared on that
-    # common set (below), never on the set it descended with.
+    # landmarks. One common set: those near the input box or the best hypothesis that lie in the detections'
+    # visual hull (placement.on_silhouettes), so that clutter, floor and neighbour points in a too large region
+    # do not favour the placement that covers them, nor pull the surface towards them. Hypotheses and code
+    # restarts always use it; the box starts too with `landmark_filter` (else those near the input box: the
+    # paper's setting). Every run's end state is compared on the common set (below), never on the set it
+    # descended with.
     def tensor(points):
         return torch.as_tensor(points) if len(points) >= 5 and cfg.w_geometry > 0 else None
 
     n_box = 4 + len(yaws)
     near_input = slam_points_near(slam_points, center, size, box_yaw, margin=0.1 * float(np.max(size)) + 0.05)
-    slam_input, slam_common = tensor(near_input), tensor(near_input)
+    neighbours = neighbour_boxes if cfg.landmark_filter else ()
+    box_set = placement.on_silhouettes(near_input, views, batch, neighbours, cfg.landmark_tolerance) \
+        if cfg.landmark_filter else near_input
+    common = box_set
     if len(candidates) > n_box:
         c_h, sz_h, y_h = placement.placed_box(pts0_np, *candidates[n_box][:3])
         near_h = slam_points_near(slam_points, c_h, sz_h, y_h, margin=0.1 * float(np.max(sz_h)) + 0.05)
-        slam_common = tensor(placement.on_silhouettes(np.unique(np.concatenate([near_input, near_h]), axis=0), views, batch))
+        common = placement.on_silhouettes(np.unique(np.concatenate([near_input, near_h]), axis=0), views, batch,
+                                          neighbours, cfg.landmark_tolerance)
+    slam_input, slam_common = tensor(box_set), tensor(common)
     scores = []
     with torch.no_grad():
         for k, (yaw, t, s, _) in enumerate(candidates):
@@ -516,7 +533,8 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
     return SparseResult(zb.cpu().numpy().astype(np.float32), pose_matrix(yb, tb, s), float(s), yb, np.asarray(tb),
                         reason=reason, energies=terms_b, initial_energies=initial_terms, init_yaw=yaw0,
                         placement=source, input_energy=input_energy, iterations=done,
-                        best_iteration=best_it, views=len(views), seconds=time.perf_counter() - start)
+                        best_iteration=best_it, views=len(views), seconds=time.perf_counter() - start,
+                        landmarks=np.asarray(common if chosen > 0 else box_set, np.float32) if cfg.landmark_filter else None)
 
 
 class ViewStore:
