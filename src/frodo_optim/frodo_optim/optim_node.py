@@ -81,8 +81,9 @@ PARAMS = (
     ParamSpec('sparse_code_restarts', 4, 'Also start the sparse stage from the best of this many lowest-energy '
               'training codes of the object\'s class (beyond the paper; 0: off; README "Code freedom").'),
     ParamSpec('sparse_landmark_filter', True, 'Only landmarks in the detections\' visual hull (on the masks in '
-              '>= 75 % of the views that see them) and in no smaller neighbour\'s box enter Eg, in the sparse and '
-              'the dense stage; false: every landmark near the box (the paper\'s setting; README "Landmarks").'),
+              '>= 75 % of the views that count; a view where one falls on another detection counts only if it lies in '
+              'a neighbour\'s box) enter Eg, in the sparse and the dense stage; false: every landmark near the box '
+              '(the paper\'s setting; README "Landmarks in the visual hull").'),
     ParamSpec('support_w_floor', 0.05, 'Weight of the floor prior E_floor in the sparse and dense stages (beyond the '
               'paper: the lowest points on the floor estimated from the boxes and landmarks; support.py); 0 disables.'),
     ParamSpec('support_w_height', 1.0, 'Weight of the class height prior E_size in the sparse and dense stages (beyond '

@@ -89,7 +89,7 @@ class SparseConfig:
     floor_tolerance: float = 0.05     # metres: E_floor = huber((bottom - floor) / floor_tolerance)
     w_height: float = 1.0             # E_size (support.py); needs refine(..., height_range=(lo, hi))
     code_restarts: int = 4            # also start from the best of the k lowest-energy training codes (0: off)
-    landmark_filter: bool = True      # every run uses only landmarks in the detections' visual hull (False: paper)
+    landmark_filter: bool = True      # box starts and dense stage too use only visual-hull landmarks (False: paper)
     landmark_tolerance: float = 0.06  # box diagonals off the mask a landmark may project (placement.on_silhouettes)
     seed: int = 0
 
@@ -389,12 +389,12 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
             keep=cfg.placement_keep, seed=cfg.seed, floor_height=floor_height if use_floor else None,
             w_floor=cfg.w_floor, floor_tolerance=cfg.floor_tolerance,
             height_range=height_range if use_height else None, w_height=cfg.w_height)]
-    # landmarks. One common set: those near the input box or the best hypothesis that lie in the detections'
-    # visual hull (placement.on_silhouettes), so that clutter, floor and neighbour points in a too large region
-    # do not favour the placement that covers them, nor pull the surface towards them. Hypotheses and code
-    # restarts always use it; the box starts too with `landmark_filter` (else those near the input box: the
-    # paper's setting). Every run's end state is compared on the common set (below), never on the set it
-    # descended with.
+    # landmarks. Hypotheses and code restarts use one common set: those near the input box or the best hypothesis
+    # that lie in the detections' visual hull (placement.on_silhouettes), so that clutter, floor and neighbour
+    # points in a too large region do not favour the placement that covers them. The box starts use those near
+    # the input box: with `landmark_filter` also only the visual-hull ones (else all: the paper's setting), so
+    # that they do not pull the surface towards other things either. Every run's end state is compared on the
+    # common set (below), never on the set it descended with.
     def tensor(points):
         return torch.as_tensor(points) if len(points) >= 5 and cfg.w_geometry > 0 else None
 
