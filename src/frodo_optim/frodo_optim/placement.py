@@ -47,6 +47,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from frodo_common.geometry import yaw_matrix
 from frodo_optim import support
 
 DEPTH_OFFSETS = (-0.3, -0.15, 0.15, 0.3)     # metres along the mean viewing direction through the ray centre
@@ -118,9 +119,7 @@ def ray_centre(views, boxes: np.ndarray, border: np.ndarray, huber: float = 0.1)
 def in_box(points: np.ndarray, center, size, yaw: float, margin: float = 0.0, floor_gap: float | None = None) -> np.ndarray:
     """(N,) bool: points (N, 3) inside the upright box grown by `margin` metres (floor_gap: the bottom is raised by
     this instead of lowered by the margin)."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    d = np.asarray(points, dtype=np.float64) - np.asarray(center, dtype=np.float64)
-    local = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]], 1)
+    local = (np.asarray(points, dtype=np.float64) - np.asarray(center, dtype=np.float64)) @ yaw_matrix(yaw)  # R^T d
     half = np.asarray(size, dtype=np.float64) / 2
     bottom = -half[2] + floor_gap if floor_gap is not None else -half[2] - margin
     return (np.abs(local[:, 0]) < half[0] + margin) & (np.abs(local[:, 1]) < half[1] + margin) & \
