@@ -68,7 +68,8 @@ class TrainingShape:
     seed: int | None = None  # procedural shapes: `frodo_datasets.shapes.generate(class_name, seed, family)`
 
 
-def _to_training(records) -> list[TrainingShape]:
+def to_training_shapes(records) -> list[TrainingShape]:
+    """`frodo_datasets.shapes.ShapeRecord`s (metric, canonical frame) as normalised `TrainingShape`s."""
     from frodo_datasets.shapes import normalise
     out = []
     for r in records:
@@ -79,10 +80,21 @@ def _to_training(records) -> list[TrainingShape]:
     return out
 
 
-def library_shapes(classes: list[str], count: int, seed: int) -> list[TrainingShape]:
-    """`count` procedural shapes per class from `frodo_datasets.shapes.library`."""
+def library_shapes(classes: list[str], count: int, seed: int, extra: bool = False) -> list[TrainingShape]:
+    """`count` procedural shapes per class from `frodo_datasets.shapes.library` (with its extra families when
+    `extra`)."""
     from frodo_datasets.shapes import library
-    return _to_training([r for c in classes for r in library(c, count, seed=seed)])
+    return to_training_shapes([r for c in classes for r in library(c, count, seed=seed, extra=extra)])
+
+
+def design_shapes(classes: list[str], count: int, seed: int) -> list[TrainingShape]:
+    """`count` shapes of every held-out design (`frodo_datasets.shapes.eval_families`) of each class: designs no
+    prior is trained on (generator seeds drawn from `seed`)."""
+    from frodo_datasets.shapes import ShapeRecord, eval_families, generate
+    seeds = np.random.default_rng(seed).choice(2**31, size=count, replace=False) if count else []
+    slug = {c: c.replace(' ', '_') for c in classes}
+    return to_training_shapes([ShapeRecord(f'{slug[c]}-{f}-{int(k)}', c, f, int(k), generate(c, int(k), f))
+                               for c in classes for f in eval_families(c) for k in seeds])
 
 
 def user_shapes(root: str | Path, class_name: str | None, up_axis: str = 'y', front_axis: str = '-z',
@@ -97,7 +109,7 @@ def user_shapes(root: str | Path, class_name: str | None, up_axis: str = 'y', fr
     if not records:
         raise FileNotFoundError(f'no meshes found under {root} (expected ShapeNet <synset>/<id>/models/model_normalized.obj '
                                 'or a folder of .obj/.ply/.stl/.off/.glb files)')
-    return _to_training(records)
+    return to_training_shapes(records)
 
 
 def training_shapes(config: dict, meshes: str | None = None, class_name: str | None = None) -> list[TrainingShape]:
@@ -107,7 +119,7 @@ def training_shapes(config: dict, meshes: str | None = None, class_name: str | N
         return user_shapes(meshes, class_name, data.get('up_axis', 'y'), data.get('front_axis', '-z'),
                            data.get('target_height'))
     return library_shapes(list(data.get('classes', ['chair', 'dining table'])), int(data.get('shapes_per_class', 100)),
-                          int(data.get('library_seed', 0)))
+                          int(data.get('library_seed', 0)), bool(data.get('extra_families', False)))
 
 
 class SampleBank:

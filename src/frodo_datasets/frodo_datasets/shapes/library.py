@@ -2,7 +2,8 @@
 
 `generate(class_name, seed, family)` is deterministic: the same arguments give identical vertices. Without
 a family, seed `k` uses family `families(class_name)[k % len(families)]`, so `generate(c, k)` equals
-`generate(c, k, families(c)[k % n])`. Held-out families (`eval_families`) are built only when named.
+`generate(c, k, families(c)[k % n])`. Held-out families (`eval_families`) and the extra training families of
+the broader prior (`extra_families`) are built only when named.
 Meshes come back in the canonical metric frame (see `canonical`).
 """
 from __future__ import annotations
@@ -14,7 +15,7 @@ from typing import Callable
 import numpy as np
 import trimesh
 
-from . import chairs, heldout, tables
+from . import chairs, extra_chairs, extra_tables, heldout, tables
 from .canonical import centre_on_bbox
 
 Generator = Callable[[np.random.Generator], trimesh.Trimesh]
@@ -31,6 +32,22 @@ FAMILIES: dict[str, dict[str, Generator]] = {
         'pedestal': tables.pedestal_table,
         'trestle': tables.trestle_table,
         'coffee': tables.coffee_table,
+    },
+}
+
+# Extra training designs of the broader prior (issue 9 item 5): `library(..., extra=True)` adds them. They are
+# kept out of FAMILIES so that `generate(c, k)` cycling, the synthetic scenes and every evaluation set built
+# from them stay as they were.
+EXTRA_FAMILIES: dict[str, dict[str, Generator]] = {
+    'chair': {
+        'shell': extra_chairs.shell_chair,
+        'upholstered': extra_chairs.upholstered_chair,
+        'spindle': extra_chairs.spindle_chair,
+    },
+    'dining table': {
+        'panel_end': extra_tables.panel_end_table,
+        'x_base': extra_tables.x_base_table,
+        'side': extra_tables.side_table,
     },
 }
 
@@ -75,6 +92,12 @@ def families(class_name: str) -> list[str]:
     return list(_families_of(class_name))
 
 
+def extra_families(class_name: str) -> list[str]:
+    """Extra training family names of a COCO class (the broader prior's; never in scenes or `families`)."""
+    _families_of(class_name)
+    return list(EXTRA_FAMILIES.get(class_name, {}))
+
+
 def eval_families(class_name: str) -> list[str]:
     """Held-out family names of a COCO class, for evaluation only (never in `families` / `library`)."""
     _families_of(class_name)
@@ -94,20 +117,21 @@ def generate(class_name: str, seed: int, family: str | None = None) -> trimesh.T
     generators = _families_of(class_name)
     names = list(generators)
     family = names[seed % len(names)] if family is None else family
-    generators = {**generators, **EVAL_FAMILIES.get(class_name, {})}
+    generators = {**generators, **EXTRA_FAMILIES.get(class_name, {}), **EVAL_FAMILIES.get(class_name, {})}
     if family not in generators:
         raise ValueError(f'unknown family {family!r} of class {class_name!r}; families: {list(generators)}')
     mesh = generators[family](np.random.default_rng(seed))
     return centre_on_bbox(mesh)
 
 
-def library(class_name: str, count: int, seed: int = 0) -> list[ShapeRecord]:
-    """`count` procedural shapes of `class_name`, families cycling evenly (record i has family i mod n).
+def library(class_name: str, count: int, seed: int = 0, extra: bool = False) -> list[ShapeRecord]:
+    """`count` procedural shapes of `class_name`, families cycling evenly (record i has family i mod n) over
+    `families(class_name)`, followed by `extra_families(class_name)` when `extra`.
 
     Shape seeds are distinct and drawn deterministically from `seed`; each record can be regenerated with
     `generate(record.class_name, record.seed, record.family)`.
     """
-    names = families(class_name)
+    names = families(class_name) + (extra_families(class_name) if extra else [])
     shape_seeds = np.random.default_rng(seed).choice(2**31, size=count, replace=False)
     slug = class_name.replace(' ', '_')
     records = []
