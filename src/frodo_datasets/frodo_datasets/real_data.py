@@ -12,6 +12,9 @@ What is real and what is rendered:
 - rendered by `frodo_datasets.render` through `frodo_datasets.synth.synthesize`: images (each model's mean
   texture colour on a procedural texture), depth, instance masks (exact projections of the ground-truth meshes:
   the figures measure the pipeline given good masks) and SLAM points (simulated as in `frodo synth`).
+
+The same sources give the held-out real-CAD split for shape priors (issue 9 item 5): `REAL_CAD_MODELS`, loaded
+into the canonical object frame by `load_real_cad` and scored by `python -m frodo_shape.evaluate_prior --real-cad`.
 """
 from __future__ import annotations
 
@@ -27,7 +30,7 @@ import numpy as np
 import trimesh
 
 from frodo_common.categories import category_by_name
-from frodo_common.geometry import invert_transform, make_transform, project_points
+from frodo_common.geometry import invert_transform, make_transform, project_points, yaw_matrix
 from frodo_datasets.convert.tum import intrinsics_preset, read_trajectory
 from frodo_datasets.render import Material, RenderObject
 from frodo_datasets.scene import Scene, SceneObject
@@ -55,6 +58,7 @@ class SceneSpec:
     clutter: tuple[str, ...] = ()
 
 
+MODEL_PREFIXES = ('aws_robomaker_residential_', 'aws_robomaker_retail_')  # small-house, bookstore models
 CLASS_BY_PREFIX = {'Chair': 'chair', 'KitchenTable': 'dining table', 'BalconyTable': 'dining table',
                    'CoffeeTable': 'dining table', 'ReadingDesk': 'dining table'}
 
@@ -167,7 +171,9 @@ def load_model(models_dir: str | Path, model: str) -> tuple[trimesh.Trimesh, tup
 
 def class_of(model: str) -> str:
     """Contract class name of a RoboMaker model name ('aws_robomaker_residential_ChairA_01' -> 'chair')."""
-    short = model.removeprefix('aws_robomaker_residential_')
+    short = model
+    for model_prefix in MODEL_PREFIXES:
+        short = short.removeprefix(model_prefix)
     for prefix, name in CLASS_BY_PREFIX.items():
         if short.startswith(prefix):
             return name
@@ -226,6 +232,91 @@ def visible_fraction(scene: Scene, poses: list[np.ndarray], K: np.ndarray, width
         inside = (z > 0) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
         out.append(inside.mean())
     return np.array(out)
+
+
+# ------------------------------------------------------------------------------------------ real-CAD split
+AWS_HOUSE_REPO = 'aws-robomaker-small-house-world'  # checkout folder names (scripts/fetch_real_cad.sh)
+AWS_BOOKSTORE_REPO = 'aws-robomaker-bookstore-world'
+
+
+@dataclass(frozen=True)
+class RealCadModel:
+    """A model of the held-out real-CAD split.
+
+    repo: checkout folder under the sources folder; model: RoboMaker model name (`models/<model>/meshes/`);
+    class_name: contract class; yaw_deg: rotation about z (the DAEs are z up, in metres after `load_model`) that
+    brings the model into the canonical frame (chairs: front, where a seated person looks, to +x; tables: long
+    side along y), checked on renders and on where the backrest lies; note: what the model is.
+    """
+
+    repo: str
+    model: str
+    class_name: str
+    yaw_deg: float
+    note: str
+
+
+REAL_CAD_MODELS = (
+    RealCadModel(AWS_HOUSE_REPO, 'aws_robomaker_residential_ChairA_01', 'chair', 180.0,
+                 'upholstered dining chair; its backrest is at +x in the DAE'),
+    RealCadModel(AWS_HOUSE_REPO, 'aws_robomaker_residential_ChairD_01', 'chair', 0.0,
+                 'cantilevered one-piece (Z-shaped) chair; backrest at -x'),
+    RealCadModel(AWS_BOOKSTORE_REPO, 'aws_robomaker_retail_ChairB_01', 'chair', 0.0,
+                 'backless three-legged bar stool (COCO has no stool class); no front, yaw arbitrary'),
+    RealCadModel(AWS_HOUSE_REPO, 'aws_robomaker_residential_KitchenTable_01', 'dining table', 0.0,
+                 'rectangular dining table on two trestle leg frames; long side along y'),
+    RealCadModel(AWS_HOUSE_REPO, 'aws_robomaker_residential_BalconyTable_01', 'dining table', 0.0,
+                 'square pedestal side table (0.4 m high)'),
+    RealCadModel(AWS_HOUSE_REPO, 'aws_robomaker_residential_CoffeeTable_01', 'dining table', 90.0,
+                 'low box coffee table (top, bottom and two long side panels); long side along x in the DAE'),
+    RealCadModel(AWS_HOUSE_REPO, 'aws_robomaker_residential_ReadingDesk_01', 'dining table', 0.0,
+                 'writing desk on four legs with two drawer boxes; long side along y'),
+)
+# Looked at and left out: not a chair or table in COCO's sense.
+REAL_CAD_DROPPED = {
+    'aws_robomaker_retail_DeskA_01': 'shop counter: a closed 3.6 x 1.0 x 1.0 m cabinet of book cubbies under a top',
+    'aws_robomaker_retail_DeskB_01': 'bar counter: a 6.0 x 0.75 m top at 1.1 m on one row of three legs',
+}
+
+
+def real_cad_canonical(mesh: trimesh.Trimesh, spec: RealCadModel) -> trimesh.Trimesh:
+    """Copy of a loaded (z up, metric) model mesh in the canonical frame: turned by `spec.yaw_deg` about z and
+    centred on its bounding box."""
+    out = mesh.copy()
+    out.apply_transform(make_transform(yaw_matrix(np.radians(spec.yaw_deg)), None))
+    out.apply_translation(-out.bounds.mean(axis=0))
+    return out
+
+
+def real_cad_models(classes: list[str] | tuple[str, ...] | None = None) -> list[RealCadModel]:
+    """The split's models, those of `classes` only when given (in table order)."""
+    return [m for m in REAL_CAD_MODELS if classes is None or m.class_name in classes]
+
+
+def load_real_cad(src: str | Path, classes: list[str] | tuple[str, ...] | None = None) -> list:
+    """The real-CAD split as canonical metric `ShapeRecord`s (family 'aws_robomaker', seed -1, `source` the DAE).
+
+    src: the folder holding the repository checkouts (`scripts/fetch_real_cad.sh`'s SRC); reading the COLLADA
+    files needs pycollada (SRC/pydeps on PYTHONPATH). Meshes are repaired like user meshes
+    (`shapes.user_meshes.repair`); `watertight` says whether the result is a closed volume (several are open
+    shells: their inside test falls back to the winding number, `frodo_shape.sdf_data.inside`).
+    """
+    from frodo_datasets.shapes.library import ShapeRecord
+    from frodo_datasets.shapes.user_meshes import repair
+    src = Path(src)
+    records = []
+    for spec in real_cad_models(classes):
+        models_dir = src / spec.repo / 'models'
+        if not (models_dir / spec.model).is_dir():
+            raise FileNotFoundError(f'{models_dir / spec.model} not found; run scripts/fetch_real_cad.sh {src}')
+        mesh, _ = load_model(models_dir, spec.model)
+        mesh = repair(real_cad_canonical(mesh, spec))
+        mesh.apply_translation(-mesh.bounds.mean(axis=0))
+        source = min((models_dir / spec.model / 'meshes').glob('*_visual.DAE'), default=None)
+        records.append(ShapeRecord(name=spec.model.split('_', 3)[-1], class_name=spec.class_name,
+                                   family='aws_robomaker', seed=-1, mesh=mesh, watertight=bool(mesh.is_volume),
+                                   source=source))
+    return records
 
 
 # ------------------------------------------------------------------------------------------ bags

@@ -83,6 +83,57 @@ def test_world_file_poses(tmp_path):
         rd.class_of('aws_robomaker_residential_SofaC_01')
 
 
+def test_real_cad_split_keeps_chairs_and_tables_of_both_worlds():
+    kept = [m.model for m in rd.REAL_CAD_MODELS]
+    assert len(set(kept)) == len(kept) and not set(kept) & set(rd.REAL_CAD_DROPPED)
+    for m in rd.REAL_CAD_MODELS:
+        assert m.class_name == rd.class_of(m.model)  # one class fact for bags and split
+        assert m.repo == (rd.AWS_BOOKSTORE_REPO if '_retail_' in m.model else rd.AWS_HOUSE_REPO)
+    assert rd.class_of('aws_robomaker_retail_ChairB_01') == 'chair'
+    for model in rd.REAL_CAD_DROPPED:  # the counters have no class
+        with pytest.raises(KeyError):
+            rd.class_of(model)
+    chairs, tables = rd.real_cad_models(['chair']), rd.real_cad_models(('dining table',))
+    assert {m.class_name for m in chairs} == {'chair'} and {m.class_name for m in tables} == {'dining table'}
+    assert len(chairs) + len(tables) == len(kept) and rd.real_cad_models() == list(rd.REAL_CAD_MODELS)
+    assert rd.real_cad_models(['couch']) == []
+
+
+def _dae_chair(back_x: float) -> trimesh.Trimesh:
+    """A box chair as the DAEs are (z up, on the floor, off-centre): seat, and a backrest at x = back_x."""
+    seat = trimesh.creation.box((0.45, 0.45, 0.45))
+    seat.apply_translation((0.0, 0.0, 0.225))
+    back = trimesh.creation.box((0.05, 0.45, 0.45))
+    back.apply_translation((back_x, 0.0, 0.675))
+    chair = trimesh.util.concatenate([seat, back])
+    chair.apply_translation((0.3, -0.2, 0.0))
+    return chair
+
+
+def test_real_cad_models_come_into_the_canonical_frame():
+    # Where the DAEs have them (seen on renders): ChairA's backrest at +x, ChairD's at -x; the coffee table's long
+    # side along x, the other tables' along y. Canonical: chairs face +x (backrest at -x), long sides along y.
+    spec = {m.model.split('_', 3)[-1]: m for m in rd.REAL_CAD_MODELS}
+    for name, back_x in [('ChairA_01', 0.2), ('ChairD_01', -0.2)]:
+        chair = rd.real_cad_canonical(_dae_chair(back_x), spec[name])
+        backrest = chair.vertices[chair.vertices[:, 2] > 0.1]
+        assert np.allclose(chair.bounds.mean(axis=0), 0.0) and np.allclose(chair.extents, [0.45, 0.45, 0.9])
+        assert backrest[:, 0].mean() < -0.15
+    for name, dims in [('CoffeeTable_01', (1.315, 0.655, 0.322)), ('KitchenTable_01', (0.7, 1.8, 0.8)),
+                       ('BalconyTable_01', (0.557, 0.557, 0.4)), ('ReadingDesk_01', (0.524, 1.144, 0.743))]:
+        table = trimesh.creation.box(dims)
+        table.apply_translation((0.3, -0.2, dims[2] / 2))
+        table = rd.real_cad_canonical(table, spec[name])
+        assert np.allclose(table.bounds.mean(axis=0), 0.0) and np.isclose(table.extents[2], dims[2])
+        assert table.extents[1] >= table.extents[0] - 1e-9 and np.isclose(table.extents[1], max(dims[:2]))
+
+
+def test_load_real_cad_names_the_fetch_script_without_sources(tmp_path):
+    with pytest.raises(FileNotFoundError, match='fetch_real_cad.sh'):
+        rd.load_real_cad(tmp_path)
+    assert rd.load_real_cad(tmp_path, ['couch']) == []
+
+
 def test_tum_intrinsics_scale_keeps_pixel_centres():
     K = rd.tum_intrinsics(320, 240)
     assert np.allclose([K[0, 0], K[1, 1]], [517.3 / 2, 516.5 / 2])

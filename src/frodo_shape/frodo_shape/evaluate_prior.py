@@ -1,9 +1,15 @@
 """Measurements of a shape prior (paper Sec. 3 embedding quality, Sec. 4.2 single-view encoder, supp. speed).
 
     python -m frodo_shape.evaluate_prior --prior furniture [--heldout 10] [--views 3] [--out metrics.json]
+        [--real-cad data/real/build/src [--real-cad-figure real_cad.png]]
 
 - Auto-decoder fit: codes of held-out procedural shapes (seeds never trained on) are optimised against
   their SDF samples (`ShapePrior.fit_sdf`), meshed, scaled to metres, and compared with the ground truth.
+- Held-out designs (`--heldout-designs N`): the same fit for N shapes of each evaluation-only family
+  (`frodo_datasets.shapes.eval_families`: cantilever and tub chairs, desks, round four-leg tables).
+- Real-CAD split (`--real-cad SRC`): the same fit for artist-made models of real furniture products
+  (`frodo_datasets.real_data.REAL_CAD_MODELS`, fetched by `scripts/fetch_real_cad.sh SRC`; data/real/README.md),
+  per model and per class, with a check of each model's inside test (several are open shells).
 - Training reconstruction: the same for training shapes with their learnt codes.
 - Single-view encoder: held-out shapes rendered like the encoder's training data (random view, material,
   light, floor/wall/backdrop), cropped at the true box (`crops.square_crop`), encoded, meshed, compared.
@@ -31,9 +37,10 @@ from scipy.spatial import cKDTree
 
 from frodo_shape.meshing import grid_points
 from frodo_shape.prior import ShapePrior
-from frodo_shape.sdf_data import SamplingConfig, cached_samples, inside
+from frodo_shape.sdf_data import SamplingConfig, cached_samples, inside, inside_check
 from frodo_shape.augment import CropAugmentation, augment_crop
-from frodo_shape.train import TrainingShape, library_shapes, load_config, render_scene, render_view
+from frodo_shape.train import (TrainingShape, design_shapes, library_shapes, load_config, render_scene, render_view,
+                               to_training_shapes)
 
 HELDOUT_SEED = 7919  # library seed of the held-out shapes (training priors use library_seed 0)
 HANDHELD_CONFIG = 'furniture_encoder_handheld'  # its renders' distance and `augment:`: the --handheld-views crops
@@ -78,15 +85,67 @@ def _summary(rows: list[dict]) -> dict:
 
 
 def evaluate_fit(prior: ShapePrior, shapes: list[TrainingShape], steps: int = 400, resolution: int = 64,
-                 cache_dir: Path | None = None) -> list[dict]:
-    """Auto-decoder fit of `shapes` (codes optimised on their SDF samples): per-shape metrics."""
+                 cache_dir: Path | None = None, meshes: list | None = None) -> list[dict]:
+    """Auto-decoder fit of `shapes` (codes optimised on their SDF samples): per-shape metrics. The fitted
+    normalised-frame meshes are appended to `meshes` when a list is given."""
     rows = []
     for i, s in enumerate(shapes):
         smp = cached_samples(s.mesh, SamplingConfig(), cache_dir, seed=10_000 + i)
         code = prior.fit_sdf(smp.points, smp.sdf, steps=steps, seed=i)
         mesh = prior.mesh(code, resolution)
+        if meshes is not None:
+            meshes.append(mesh)
         rows.append({'name': s.name, 'class': s.class_name, **surface_metrics(_metric(mesh, s.scale), _metric(s.mesh, s.scale))})
     return rows
+
+
+def evaluate_real_cad(prior: ShapePrior, src: str | Path, steps: int = 400, resolution: int = 64,
+                      cache_dir: Path | None = None) -> tuple[dict, list[TrainingShape], list[trimesh.Trimesh]]:
+    """Auto-decoder fit of the real-CAD split under `src` (models of the prior's classes), as `evaluate_fit`.
+
+    Returns (results: per-model rows, summary, per-class summaries and a per-model description: extents in
+    metres, closed or not, `inside_check`; the shapes; the fitted normalised-frame meshes).
+    """
+    from frodo_datasets.real_data import load_real_cad
+    records = load_real_cad(src, prior.class_names)
+    shapes = to_training_shapes(records)
+    models = []
+    for record, shape in zip(records, shapes):
+        check = inside_check(shape.mesh)
+        models.append({'name': shape.name, 'class': shape.class_name, 'source': str(record.source),
+                       'extents_m': [round(float(v), 3) for v in record.mesh.extents],
+                       'closed': bool(record.watertight), **check})
+        if not record.watertight or not check['consistent']:
+            print(f'real-CAD {shape.name}: {"closed" if record.watertight else "not closed (open shell parts)"}, '
+                  f'inside test {check["inside_fraction"]:.3f} of the box vs {check["reference_fraction"]:.3f} '
+                  f'{"(consistent)" if check["consistent"] else "(INCONSISTENT: SDF signs unreliable)"}',
+                  file=sys.stderr)
+    meshes: list[trimesh.Trimesh] = []
+    rows = evaluate_fit(prior, shapes, steps, resolution, cache_dir, meshes)
+    classes = [c for c in prior.class_names if any(r['class'] == c for r in rows)]
+    return ({'summary': _summary(rows), 'per_class': {c: _summary([r for r in rows if r['class'] == c]) for c in classes},
+             'rows': rows, 'models': models}, shapes, meshes)
+
+
+def fit_figure(shapes: list[TrainingShape], meshes: list[trimesh.Trimesh], rows: list[dict], path: str | Path,
+               title: str = '') -> None:
+    """Ground truth (top) and fitted mesh (bottom) per shape, thumbnails of the normalised frame, with F1@5cm/CD."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(2, len(shapes), figsize=(1.7 * len(shapes), 3.6), squeeze=False)
+    for j, (s, mesh, row) in enumerate(zip(shapes, meshes, rows)):
+        for i, (m, label) in enumerate([(s.mesh, f'{s.name}\n{s.class_name}'),
+                                        (mesh, f'fit: F1@5cm {row["f1@5cm"]:.0f}\nCD {row["cd_cm"]:.1f} cm')]):
+            axes[i, j].imshow(thumbnail(m))
+            axes[i, j].set_title(label, fontsize=7)
+            axes[i, j].axis('off')
+    if title:
+        fig.suptitle(title, fontsize=8)
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 def evaluate_training(prior: ShapePrior, count: int, resolution: int = 64) -> list[dict]:
@@ -289,7 +348,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--views', type=int, default=3, help='rendered views per held-out shape (encoder)')
     ap.add_argument('--handheld-views', type=int, default=0,
                     help=f'views per held-out shape with the capture conditions of {HANDHELD_CONFIG}.yaml (encoder)')
-    ap.add_argument('--fit-steps', type=int, default=400, help='code optimisation steps per held-out shape (0: skip)')
+    ap.add_argument('--fit-steps', type=int, default=400,
+                    help='code optimisation steps per held-out (and real-CAD) shape (0: skip the held-out fit)')
+    ap.add_argument('--heldout-designs', type=int, default=0,
+                    help='shapes per held-out design (evaluation-only families) to fit (0: skip)')
+    ap.add_argument('--real-cad', default=None, metavar='SRC',
+                    help='also fit the real-CAD split found under SRC (scripts/fetch_real_cad.sh; pycollada on '
+                         'PYTHONPATH, e.g. SRC/pydeps); --heldout 0 --train-count 0 --views 0 fit only it')
+    ap.add_argument('--real-cad-figure', default=None, help='save ground truth vs fitted real-CAD meshes (PNG) here')
     ap.add_argument('--resolution', type=int, default=64)
     ap.add_argument('--threads', type=int, default=1)
     ap.add_argument('--cache', default=None, help='SDF sample cache folder')
@@ -299,6 +365,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="compare point-decoder variants fitted to the training codes (e.g. small paper)")
     ap.add_argument('--point-steps', type=int, default=400)
     args = ap.parse_args(argv)
+    if args.real_cad and args.fit_steps <= 0:
+        ap.error('--real-cad needs --fit-steps > 0')
     torch.set_num_threads(args.threads)
     prior = ShapePrior.load(args.prior)
     results: dict = {'prior': str(prior.path), 'machine': machine()}
@@ -307,11 +375,32 @@ def main(argv: list[str] | None = None) -> int:
     assert not set(s.name for s in held) & set(prior.training_names), 'held-out shapes overlap the training set'
     results['speed'] = measure_speed(prior)
     print('speed', json.dumps(results['speed'], indent=1), flush=True)
-    if args.fit_steps > 0:
+    if args.fit_steps > 0 and held:
         rows = evaluate_fit(prior, held, args.fit_steps, args.resolution, Path(args.cache) if args.cache else None)
         results['heldout_fit'] = {'summary': _summary(rows), 'per_class': {
             c: _summary([r for r in rows if r['class'] == c]) for c in prior.class_names}, 'rows': rows}
         print('held-out auto-decoder fit', json.dumps(results['heldout_fit']['summary']), flush=True)
+    if args.fit_steps > 0 and args.heldout_designs > 0:
+        designs = design_shapes(prior.class_names, args.heldout_designs, seed=HELDOUT_SEED)
+        rows = evaluate_fit(prior, designs, args.fit_steps, args.resolution, Path(args.cache) if args.cache else None)
+        for r, s in zip(rows, designs):
+            r['family'] = s.family
+        families = sorted({(s.class_name, s.family) for s in designs})
+        results['heldout_designs_fit'] = {'summary': _summary(rows), 'per_family': {
+            f'{c}/{f}': _summary([r for r in rows if r['class'] == c and r['family'] == f]) for c, f in families},
+            'rows': rows}
+        print('held-out designs auto-decoder fit', json.dumps(results['heldout_designs_fit']['per_family']), flush=True)
+    if args.real_cad:
+        real, shapes, meshes = evaluate_real_cad(prior, args.real_cad, args.fit_steps, args.resolution,
+                                                 Path(args.cache) if args.cache else None)
+        results['real_cad'] = {'src': str(args.real_cad), 'fit_steps': args.fit_steps, **real}
+        for r in real['rows']:
+            print(f'real-CAD {r["name"]:16s} {r["class"]:12s} CD {r["cd_cm"]:5.2f} cm  F1@1cm {r["f1@1cm"]:5.1f}  '
+                  f'F1@5cm {r["f1@5cm"]:5.1f}', flush=True)
+        print('real-CAD auto-decoder fit', json.dumps(real['per_class']), flush=True)
+        if args.real_cad_figure:
+            fit_figure(shapes, meshes, real['rows'], args.real_cad_figure,
+                       f'real-CAD split, auto-decoder fit ({args.fit_steps} steps) with prior {prior.path.name}')
     rows = evaluate_training(prior, args.train_count, args.resolution)
     if rows:
         results['training_recon'] = {'summary': _summary(rows), 'rows': rows}
@@ -333,7 +422,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.point_variants:
         results['point_decoder_variants'] = compare_point_decoders(prior, args.point_variants, args.point_steps)
         print('point decoder variants', json.dumps(results['point_decoder_variants']), flush=True)
-    if args.figure and prior.encoder is not None:
+    if args.figure and prior.encoder is not None and held:
         retrieval_figure(prior, held, args.figure)
     results['seconds'] = time.time() - t
     if args.out:

@@ -94,6 +94,28 @@ def inside(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
     return result
 
 
+def inside_check(mesh: trimesh.Trimesh, resolution: int = 32, voxels: int = 256) -> dict:
+    """How sensible the inside test (`inside`, the sign of the SDF samples) is on `mesh`.
+
+    inside_fraction: share of resolution³ cell centres of the bounding box that `inside` calls inside;
+    reference_fraction: the same share from an independent estimate, the exact volume of a closed mesh, else the
+    filled voxelisation (`voxels` along the largest extent; counts a one-voxel surface shell, so reads a little
+    high); consistent: the two agree within a factor 1.5 (an open shell whose winding number is ambiguous, e.g.
+    leaving hidden cells half solid, fails this).
+    """
+    lo, hi = mesh.bounds
+    centres = [lo[k] + (np.arange(resolution) + 0.5) * (hi[k] - lo[k]) / resolution for k in range(3)]
+    grid = np.stack(np.meshgrid(*centres, indexing='ij'), axis=-1).reshape(-1, 3)
+    box = float(np.prod(hi - lo))
+    if mesh.is_volume:
+        reference = abs(float(mesh.volume)) / box
+    else:
+        reference = float(mesh.voxelized(float((hi - lo).max()) / voxels).fill().volume) / box
+    fraction = float(inside(mesh, grid).mean())
+    ratio = fraction / reference if reference > 0 else float('inf')
+    return {'inside_fraction': fraction, 'reference_fraction': reference, 'consistent': bool(1 / 1.5 <= ratio <= 1.5)}
+
+
 class SurfaceDistance:
     """Unsigned distance to a mesh: KD-tree candidates over dense surface samples + exact triangle distance."""
 

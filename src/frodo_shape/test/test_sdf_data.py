@@ -2,7 +2,8 @@
 import numpy as np
 import trimesh
 
-from frodo_shape.sdf_data import SamplingConfig, cached_samples, inside, sample_sdf, signed_distance, winding_number
+from frodo_shape.sdf_data import (SamplingConfig, cached_samples, inside, inside_check, sample_sdf, signed_distance,
+                                  winding_number)
 
 
 def test_sphere_signed_distance_matches_analytic():
@@ -31,6 +32,24 @@ def test_winding_number_of_open_mesh_part():
     box = trimesh.creation.box((0.5, 0.5, 0.5))
     w = winding_number(box, np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]))
     np.testing.assert_allclose(w, [1.0, 0.0], atol=1e-6)
+
+
+def test_inside_check_agrees_on_closed_parts_and_flags_an_open_tube():
+    # A table of two closed boxes (top and pedestal, concatenated): the inside test matches the exact volume.
+    top = trimesh.creation.box((1.0, 0.6, 0.1))
+    top.apply_translation((0.0, 0.0, 0.35))
+    table = trimesh.util.concatenate([top, trimesh.creation.box((0.1, 0.1, 0.6))])
+    check = inside_check(table)
+    exact = (1.0 * 0.6 * 0.1 + 0.1 * 0.1 * 0.6) / (1.0 * 0.6 * 0.7)  # bounding box 1.0 x 0.6 x 0.7
+    assert check['consistent'] and np.isclose(check['reference_fraction'], exact)
+    assert abs(check['inside_fraction'] - exact) < 0.02
+    # A box with its two x faces missing: an open tube whose winding number calls most of its hollow inside,
+    # while its voxelisation (open to the outside) fills nothing but the walls.
+    box = trimesh.creation.box((1.0, 0.6, 0.4))
+    tube = trimesh.Trimesh(box.vertices, box.faces[np.abs(box.face_normals[:, 0]) < 0.5])
+    check = inside_check(tube)
+    assert not tube.is_volume and not check['consistent']
+    assert check['inside_fraction'] > 0.3 and check['reference_fraction'] < 0.1
 
 
 def test_samples_have_both_signs_and_are_cached(tmp_path):

@@ -14,7 +14,8 @@ import yaml
 from frodo_shape import cli_train
 from frodo_shape.models import DecoderConfig, EncoderConfig, ImageEncoder, JointDecoder
 from frodo_shape.prior import ShapePrior
-from frodo_shape.train import (RenderSet, TrainingShape, chamfer, encoder_input, train_decoder, train_encoder)
+from frodo_shape.train import (RenderSet, TrainingShape, chamfer, design_shapes, encoder_input, train_decoder,
+                               train_encoder)
 
 TINY_DECODER = {
     'seed': 0,
@@ -137,3 +138,14 @@ def test_decoder_trains_on_a_folder_of_user_meshes_via_the_cli(tmp_path):
     assert sorted(prior.training_classes) == ['chair'] * 3 and len(prior.training_names) == 3
     assert all(s['seed'] is None for s in prior.training_shapes)
     assert cli_train.main(['decoder', '--config', str(cfg), '--out', str(out), '--meshes', str(meshes)]) == 2
+
+
+def test_design_shapes_are_the_evaluation_only_families() -> None:
+    from frodo_datasets.shapes import eval_families, extra_families, families
+    shapes = design_shapes(['chair', 'dining table'], 2, seed=11)
+    for c in ('chair', 'dining table'):
+        got = [s.family for s in shapes if s.class_name == c]
+        assert sorted(got) == sorted(eval_families(c) * 2)
+        assert not set(got) & set(families(c) + extra_families(c))
+    assert all(abs(np.linalg.norm(s.mesh.extents) / 2 - 0.9) < 1e-6 and s.seed is not None for s in shapes)
+    assert [s.name for s in design_shapes(['chair'], 2, seed=11)] == [s.name for s in shapes if s.class_name == 'chair']
