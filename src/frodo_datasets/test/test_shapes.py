@@ -271,3 +271,5 @@ def test_unreadable_file_is_skipped_with_a_warning(tmp_path: Path) -> None:
 def test_save_gallery_writes_a_png(tmp_path: Path) -> None:
     path = save_gallery(tmp_path / 'gallery.png', shapes_per_family=1)
     assert path.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
+    extra = save_gallery(tmp_path / 'extra.png', shapes_per_family=1, extra=True)
+    assert extra.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n' and extra.read_bytes() != path.read_bytes()

@@ -13,7 +13,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
-from .library import eval_families, families, generate
+from .library import eval_families, extra_families, families, generate
 
 VIEW_AZIMUTH_DEG = -35.0  # camera azimuth about z, measured from +x (negative: on the -y side, the right)
 VIEW_ELEVATION_DEG = 20.0
@@ -57,12 +57,13 @@ def render_mesh(mesh: trimesh.Trimesh, colour: np.ndarray, pixels: int = PANEL_P
 
 
 def save_gallery(path: str | Path, seed: int = 0, shapes_per_family: int = SHAPES_PER_FAMILY,
-                 heldout: bool = False) -> Path:
+                 heldout: bool = False, extra: bool = False) -> Path:
     """Render `shapes_per_family` shapes (seeds `seed`, `seed + 1`, ...) of every family of both classes
     into a grid figure at `path` (PNG); panel titles give family, seed and bounding-box extents
     (x depth, y width, z height) in metres. heldout: the evaluation-only families (`eval_families`)
-    instead of the training families. Returns the path written."""
-    listed = eval_families if heldout else families
+    instead of the training families; extra: the extra training families of the broader prior
+    (`extra_families`). Returns the path written."""
+    listed = eval_families if heldout else extra_families if extra else families
     entries = [(class_name, family, seed + index) for class_name in CLASS_COLOURS for family in listed(class_name)
                for index in range(shapes_per_family)]
     rows = -(-len(entries) // COLUMNS)
