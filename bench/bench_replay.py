@@ -32,6 +32,7 @@ from frodo_common.categories import BY_NAME, category_by_id
 from frodo_common.evaluation import EvalObject, evaluate, load_ground_truth_bag
 from frodo_optim.core import fused_estimate
 from frodo_optim.dense import DenseConfig, refine_dense
+from frodo_optim.optim_node import PARAMS as NODE_PARAMS
 from frodo_optim.photometric import dense_view_from_frame
 from frodo_optim.sparse import SparseConfig, ViewStore, refine, view_from_mask
 from frodo_optim.support import FLOOR_CLASSES, floor_height
@@ -40,8 +41,10 @@ from frodo_shape.prior import ShapePrior
 DEPTH_TOPICS = ('/camera/depth/image_raw',)
 
 
-def backend_inputs(bag: Path, recorded: Path, dense: bool, mask_samples: int = 96, crop: int = 96, fill_views: int = 8):
-    """{object id: (class name, box, code, views, dense views)}, slam points (N, 3) of a recorded run."""
+def backend_inputs(bag: Path, recorded: Path, dense: bool, fill_views: int, dense_fill_views: int | None = None,
+                   mask_samples: int = 96, crop: int = 96):
+    """{object id: (class name, box, code, views, dense views)}, slam points (N, 3) of a recorded run.
+    dense_fill_views: `fill_views` of the dense views (None: the same)."""
     camera_info, poses, images, depths, slam = None, {}, {}, {}, None
     for m in BagReader(bag).messages([topics.CAMERA_INFO, topics.POSE, topics.SLAM_POINTS, topics.IMAGE, *DEPTH_TOPICS]):
         msg = m.decode()
@@ -113,7 +116,7 @@ def backend_inputs(bag: Path, recorded: Path, dense: bool, mask_samples: int = 9
             continue
         known = category_by_id(codes[oid][0])
         out[oid] = (known.name if known else ns, box, codes[oid][2], store.views_of(oid, fill_views),
-                    dense_store.views_of(oid, fill_views))
+                    dense_store.views_of(oid, fill_views if dense_fill_views is None else dense_fill_views))
     return out, (slam[np.isfinite(slam).all(1)] if slam is not None and len(slam) else slam)
 
 
@@ -126,15 +129,21 @@ def main() -> None:
     ap.add_argument('--threads', type=int, default=1)
     ap.add_argument('--no-floor', action='store_true', help='no floor estimate (E_floor off)')
     ap.add_argument('--no-height', action='store_true', help='no class height range (E_size off)')
+    ap.add_argument('--prior', default='furniture', help="shipped prior name or prior folder (default 'furniture'); "
+                    'the recording must come from a graph that ran the same prior (its codes)')
+    node_fill = next(p.default for p in NODE_PARAMS if p.name == 'fill_views')
+    ap.add_argument('--fill-views', type=int, default=node_fill, help=f"optim_node's fill_views (default {node_fill}, the node's)")
+    ap.add_argument('--dense-fill-views', type=int, default=None, help='fill_views of the dense stage (default: --fill-views)')
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    prior = ShapePrior.load('furniture')
+    prior = ShapePrior.load(args.prior)
     scfg = SparseConfig(**(json.loads(args.sparse) if args.sparse else {}))
     dense = args.dense != 'off'
     dcfg = DenseConfig(**(json.loads(args.dense) if dense and args.dense else {}))
     rows, pooled = [], {'fused': [], 'sparse': [], 'dense': []}
     for bag, rec in zip(args.pairs[0::2], args.pairs[1::2]):
-        objects, slam = backend_inputs(Path(bag), Path(rec), dense)
+        objects, slam = backend_inputs(Path(bag), Path(rec), dense, fill_views=args.fill_views,
+                                       dense_fill_views=args.dense_fill_views)
         gt = load_ground_truth_bag(bag)
         preds = {'fused': [], 'sparse': [], 'dense': []}
         floor = None if args.no_floor else floor_height([o[1] for o in objects.values() if o[0] in FLOOR_CLASSES], slam)
