@@ -12,13 +12,25 @@ def prior():
     return ShapePrior.load('furniture')
 
 
-def test_furniture_prior_is_shipped_and_loads_with_weights_only():
-    assert 'furniture' in shipped_priors()
-    for f in ('decoder.pt', 'encoder.pt'):
-        blob = torch.load(PRIORS_DIR / 'furniture' / f, map_location='cpu', weights_only=True)
-        assert isinstance(blob, dict)
+def test_shipped_priors_load_with_weights_only_and_have_a_model_card():
+    assert {'furniture', 'furniture_broad'} <= set(shipped_priors())
+    for name in shipped_priors():
+        for f in ('decoder.pt', 'encoder.pt'):
+            blob = torch.load(PRIORS_DIR / name / f, map_location='cpu', weights_only=True)
+            assert isinstance(blob, dict)
+            assert (PRIORS_DIR / name / f).stat().st_size < 5_000_000  # small enough for git
+        assert (PRIORS_DIR / name / 'MODEL_CARD.md').is_file()
     with pytest.raises(FileNotFoundError, match='shipped'):
         resolve_prior('no-such-prior')
+
+
+def test_broad_prior_was_trained_on_the_extra_families():
+    broad = ShapePrior.load('furniture_broad')
+    assert broad.code_dim == 64 and broad.class_names == ['chair', 'dining table']
+    assert broad.training_codes.shape == (280, 64)
+    families = {s['family'] for s in broad.training_shapes}
+    assert {'shell', 'upholstered', 'spindle', 'panel_end', 'x_base', 'side', 'four_leg', 'office'} <= families
+    assert not families & {'cantilever', 'tub', 'desk', 'round_four_leg'}  # evaluation-only designs
 
 
 def test_prior_metadata(prior):
