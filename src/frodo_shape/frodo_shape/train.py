@@ -90,10 +90,9 @@ def library_shapes(classes: list[str], count: int, seed: int, extra: bool = Fals
 def design_shapes(classes: list[str], count: int, seed: int) -> list[TrainingShape]:
     """`count` shapes of every held-out design (`frodo_datasets.shapes.eval_families`) of each class: designs no
     prior is trained on (generator seeds drawn from `seed`)."""
-    from frodo_datasets.shapes import ShapeRecord, eval_families, generate
+    from frodo_datasets.shapes import eval_families, procedural_record
     seeds = np.random.default_rng(seed).choice(2**31, size=count, replace=False) if count else []
-    slug = {c: c.replace(' ', '_') for c in classes}
-    return to_training_shapes([ShapeRecord(f'{slug[c]}-{f}-{int(k)}', c, f, int(k), generate(c, int(k), f))
+    return to_training_shapes([procedural_record(c, int(k), f)
                                for c in classes for f in eval_families(c) for k in seeds])
 
 

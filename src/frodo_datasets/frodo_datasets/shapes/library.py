@@ -133,10 +133,10 @@ def library(class_name: str, count: int, seed: int = 0, extra: bool = False) -> 
     """
     names = families(class_name) + (extra_families(class_name) if extra else [])
     shape_seeds = np.random.default_rng(seed).choice(2**31, size=count, replace=False)
-    slug = class_name.replace(' ', '_')
-    records = []
-    for index, shape_seed in enumerate(int(s) for s in shape_seeds):
-        family = names[index % len(names)]
-        records.append(ShapeRecord(name=f'{slug}-{family}-{shape_seed}', class_name=class_name, family=family,
-                                   seed=shape_seed, mesh=generate(class_name, shape_seed, family)))
-    return records
+    return [procedural_record(class_name, int(s), names[index % len(names)]) for index, s in enumerate(shape_seeds)]
+
+
+def procedural_record(class_name: str, seed: int, family: str) -> ShapeRecord:
+    """The `ShapeRecord` of `generate(class_name, seed, family)`, named '<class>-<family>-<seed>'."""
+    return ShapeRecord(name=f'{class_name.replace(" ", "_")}-{family}-{seed}', class_name=class_name, family=family,
+                       seed=seed, mesh=generate(class_name, seed, family))
