@@ -5,7 +5,7 @@
     frodo run BAG --out DIR --rate 1 --params nodense.yaml ; kill -INT %1
     # 2. replay the optimiser offline, any number of configurations, scored per object (contract metrics):
     .venv/bin/python bench/bench_replay.py BAG REC.mcap [BAG REC.mcap ...] [--sparse JSON] [--dense JSON|off]
-        [--json OUT.json]
+        [--box oracle] [--json OUT.json]
 
 Unlike `bench_dense.py stages` (oracle association, ground-truth boxes perturbed), the inputs are exactly what
 `optim_node` receives in the graph: the final `/frodo/tracks` box and `/frodo/object_codes` code of each
@@ -14,6 +14,11 @@ stamp with `/camera/pose`, re-sends moving views, `ViewStore` thinning), so conf
 dense stages can be compared on the same real-capture inputs without re-running the (non-deterministic,
 slow) front end. Objects are scored as `frodo eval` scores them: matched to ground truth within 0.5 m,
 CD (cm) and F1@5cm; unmatched predictions are counted.
+
+`--box oracle` swaps each object's track box for the upright box around the nearest ground-truth mesh of its
+class (`frodo_association.evaluate.upright_box`), views and codes unchanged: the gain is what a perfect front-end
+box would be worth to the back end, the rest of the gap to `bench_dense.py stages` (oracle association) is views
+and codes.
 """
 from __future__ import annotations
 
@@ -29,6 +34,7 @@ from frodo_common import conversions as conv
 from frodo_common import topics
 from frodo_common.bag import BagReader
 from frodo_common.categories import BY_NAME, category_by_id
+from frodo_association.evaluate import upright_box
 from frodo_common.evaluation import EvalObject, evaluate, load_ground_truth_bag
 from frodo_optim.core import fused_estimate
 from frodo_optim.dense import DenseConfig, refine_dense
@@ -120,6 +126,17 @@ def backend_inputs(bag: Path, recorded: Path, dense: bool, fill_views: int, dens
     return out, (slam[np.isfinite(slam).all(1)] if slam is not None and len(slam) else slam)
 
 
+def oracle_boxes(objects: dict, gt) -> dict:
+    """`backend_inputs` objects with each box replaced by the upright box of the nearest ground-truth mesh of its
+    class (any class when none has it)."""
+    boxes = [(g.class_name, upright_box(np.asarray(g.mesh.vertices))) for g in gt]
+    out = {}
+    for oid, (name, box, *rest) in objects.items():
+        same = [b for c, b in boxes if c == name] or [b for _, b in boxes]
+        out[oid] = (name, min(same, key=lambda b: np.linalg.norm(b[0][:2] - np.asarray(box[0])[:2])), *rest)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument('pairs', nargs='+', help='BAG REC [BAG REC ...]')
@@ -134,6 +151,8 @@ def main() -> None:
     node_fill = next(p.default for p in NODE_PARAMS if p.name == 'fill_views')
     ap.add_argument('--fill-views', type=int, default=node_fill, help=f"optim_node's fill_views (default {node_fill}, the node's)")
     ap.add_argument('--dense-fill-views', type=int, default=None, help='fill_views of the dense stage (default: --fill-views)')
+    ap.add_argument('--box', choices=('track', 'oracle'), default='track',
+                    help="'oracle': ground-truth boxes instead of the recorded track boxes (see above)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     prior = ShapePrior.load(args.prior)
@@ -145,6 +164,8 @@ def main() -> None:
         objects, slam = backend_inputs(Path(bag), Path(rec), dense, fill_views=args.fill_views,
                                        dense_fill_views=args.dense_fill_views)
         gt = load_ground_truth_bag(bag)
+        if args.box == 'oracle':
+            objects = oracle_boxes(objects, gt)
         preds = {'fused': [], 'sparse': [], 'dense': []}
         floor = None if args.no_floor else floor_height([o[1] for o in objects.values() if o[0] in FLOOR_CLASSES], slam)
         for oid, (name, box, code, views, dviews) in sorted(objects.items()):
@@ -199,7 +220,7 @@ def main() -> None:
                               'cd': round(float(np.mean([x[3] for x in m])), 2),
                               'f1': round(float(np.mean([x[4] for x in m])), 1),
                               'centre_cm_median': round(100 * float(np.median([x[5] for x in m])), 1)}
-    print(json.dumps({'sparse': args.sparse, 'dense': args.dense, 'summary': summary}), flush=True)
+    print(json.dumps({'sparse': args.sparse, 'dense': args.dense, 'box': args.box, 'summary': summary}), flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps({'rows': rows, 'pooled': pooled, 'summary': summary}, indent=1))
 

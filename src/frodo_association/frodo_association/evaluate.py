@@ -251,7 +251,7 @@ def summarise(results: list[SceneResult]) -> dict:
     }
 
 
-def _upright_box(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+def upright_box(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """(centre, size, yaw) of the smallest upright box around vertices (N, 3) (minimum-area rectangle in xy)."""
     (cx, cy), (w, h), angle = cv2.minAreaRect(vertices[:, :2].astype(np.float32))
     z0, z1 = vertices[:, 2].min(), vertices[:, 2].max()
@@ -294,7 +294,7 @@ def scene_from_bag(path: str, min_iou: float = 0.3) -> tuple[SynthScene, list[st
                     notes.append(f'ground-truth class {marker.ns!r} unknown, skipped')
                     continue
                 verts, _ = conv.marker_to_mesh(marker)
-                objects.append(BoxObject(BY_NAME[marker.ns].coco_id, *_upright_box(verts)))
+                objects.append(BoxObject(BY_NAME[marker.ns].coco_id, *upright_box(verts)))
                 vertices.append(verts[np.linspace(0, len(verts) - 1, min(len(verts), 2000)).astype(int)])
     if info is None or not objects:
         raise ValueError(f'{path}: needs {topics.CAMERA_INFO} and {topics.GROUND_TRUTH}')

@@ -2,12 +2,14 @@
 box-world walk written as a bag comes back with the same objects and instance labels."""
 import numpy as np
 
+from frodo_association.boxes import canonical_yaw
 from frodo_association.core import AssociationConfig
-from frodo_association.evaluate import run_scene, scene_from_bag, summarise
+from frodo_association.evaluate import run_scene, scene_from_bag, summarise, upright_box
 from frodo_association.synthetic import add_noise, make_scene
 from frodo_common import conversions as conv
 from frodo_common import topics
 from frodo_common.bag import BagWriter
+from frodo_common.geometry import box_corners
 from frodo_detection.core import FilterConfig
 from visualization_msgs.msg import MarkerArray
 
@@ -19,6 +21,16 @@ BOX_FACES = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0,
 def test_clean_walk_scores_perfect():
     m = summarise([run_scene(make_scene(3, seed=7, n_frames=40), AssociationConfig(), FilterConfig())])
     assert m['purity'] == 1.0 and m['completeness'] == 1.0 and m['center_err_m'] < 0.03
+
+
+def test_upright_box_recovers_a_yawed_box_from_its_corners():
+    center, size, yaw = np.array([1.0, -2.0, 0.4]), np.array([1.4, 0.8, 0.8]), 0.3
+    got = upright_box(box_corners(center, size, yaw))
+    want_size, want_yaw = canonical_yaw(size, yaw)
+    got_size, got_yaw = canonical_yaw(got[1], got[2])
+    np.testing.assert_allclose(got[0], center, atol=1e-5)
+    np.testing.assert_allclose(got_size, want_size, atol=1e-5)
+    assert abs(got_yaw - want_yaw) < 1e-5
 
 
 def test_scene_from_bag_recovers_objects_and_labels(tmp_path):
