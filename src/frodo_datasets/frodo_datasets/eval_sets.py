@@ -10,7 +10,9 @@ Two disjoint sets of rooms (issue 9), both in the `handheld` real-capture regime
   all: 1-2 tables and 2 chairs), shapes from the training families AND the evaluation-only families
   (`shapes.eval_families`: cantilever and tub chairs, desks, round four-leg tables), which no prior was
   trained on and nobody may tune on;
-- `realcapture-tune` (for tuning): 6 rooms, seeds 8100-8105, training families only.
+- `realcapture-tune` (for tuning): 6 rooms, seeds 8100-8105, training families only;
+- `realcapture-tune2` (for tuning): 12 more rooms, seeds 8200-8211, training families only: with the first
+  set 63 objects, so that a choice is not made on the 30-point swings of a few of 21 objects.
 Never tune on `realcapture`; report on it.
 
 Variants (`VARIANTS`) are the same rooms under different conditions: `full` (every condition, 35
@@ -68,6 +70,8 @@ SETS: dict[str, EvalSet] = {
                            'held-out evaluation: report only, never tune'),
     'realcapture-tune': EvalSet('realcapture-tune', tuple(range(8100, 8106)), tuple(3 + i % 2 for i in range(6)),
                                 'train', 'tuning (training families only)'),
+    'realcapture-tune2': EvalSet('realcapture-tune2', tuple(range(8200, 8212)), tuple(3 + i % 2 for i in range(12)),
+                                 'train', 'tuning, second set (training families only)'),
 }
 
 _HANDHELD = preset_kwargs('handheld')

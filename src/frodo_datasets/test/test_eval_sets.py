@@ -18,13 +18,15 @@ def _families(eval_set):
 
 
 def test_sets_are_disjoint_and_big_enough():
-    held, tune = SETS['realcapture'], SETS['realcapture-tune']
-    assert not set(held.seeds) & set(tune.seeds)
+    held, tune, tune2 = SETS['realcapture'], SETS['realcapture-tune'], SETS['realcapture-tune2']
+    assert not set(held.seeds) & set(tune.seeds) and not set(tune.seeds) & set(tune2.seeds)
+    assert not set(held.seeds) & set(tune2.seeds)
     assert len(held.seeds) >= 12 and sum(held.objects) >= 40
+    assert sum(tune.objects) + sum(tune2.objects) >= 60
     held_families = _families(held)
     unseen = [f for c, f in held_families if f in eval_families(c)]
     assert len(unseen) >= 8 and {c for c, f in held_families if f in eval_families(c)} == {'chair', 'dining table'}
-    assert not any(f in eval_families(c) for c, f in _families(tune))
+    assert not any(f in eval_families(c) for c, f in _families(tune) + _families(tune2))
 
 
 def test_variants_change_one_condition_at_a_time():
