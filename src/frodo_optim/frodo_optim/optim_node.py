@@ -55,7 +55,7 @@ PARAMS = (
     ParamSpec('device', 'auto', "Torch device: 'auto' (cuda if available), 'cpu' or 'cuda'."),
     ParamSpec('mesh_resolution', 64, 'Marching-cubes grid resolution for decoded meshes.'),
     ParamSpec('min_views', 2, 'Views (kept, associated detections) an object needs before it is reconstructed.'),
-    ParamSpec('fill_views', 8, 'An object with fewer kept views than this is optimised with its pruned associated '
+    ParamSpec('fill_views', 16, 'An object with fewer kept views than this is optimised with its pruned associated '
               'views too (truncated or overlapping; evenly spread) up to this many; 0: kept views only.'),
     ParamSpec('code_change_tolerance', 0.02,
               'Re-decode the mesh only when the fused code moved by more than this (relative L2); '
