@@ -30,11 +30,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from frodo_association.evaluate import upright_box
 from frodo_common import conversions as conv
 from frodo_common import topics
 from frodo_common.bag import BagReader
 from frodo_common.categories import BY_NAME, category_by_id
-from frodo_association.evaluate import upright_box
 from frodo_common.evaluation import EvalObject, evaluate, load_ground_truth_bag
 from frodo_optim.core import fused_estimate
 from frodo_optim.dense import DenseConfig, refine_dense

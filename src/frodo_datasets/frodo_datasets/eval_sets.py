@@ -5,7 +5,7 @@
     python -m frodo_datasets.eval_sets table realcapture OUT [--markdown]
     python -m frodo_datasets.eval_sets families realcapture OUT --variants full   # seen vs held-out designs
 
-Two disjoint sets of rooms (issue 9), both in the `handheld` real-capture regime (`realcapture`):
+Disjoint sets of rooms (issue 9), all in the `handheld` real-capture regime (`realcapture`):
 - `realcapture` (HELD OUT, for reporting only): 12 rooms, seeds 9100-9111, 3 or 4 objects each (42 in
   all: 1-2 tables and 2 chairs), shapes from the training families AND the evaluation-only families
   (`shapes.eval_families`: cantilever and tub chairs, desks, round four-leg tables), which no prior was
