@@ -67,7 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     room = parser.add_argument_group('room (default: the preset\'s)')
     room.add_argument('--families', choices=FAMILY_SETS, default=None,
                       help='shape families: train (the prior\'s training families, default), heldout '
-                           '(evaluation-only designs), all')
+                           '(evaluation-only designs), all (both), extra (training + the broader prior\'s extra designs)')
     room.add_argument('--tuck-chairs', type=float, default=None, metavar='P',
                       help='probability that a chair is pushed under a table (default 0)')
     room.add_argument('--clutter', type=int, default=None, metavar='N',

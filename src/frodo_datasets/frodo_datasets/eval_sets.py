@@ -12,7 +12,11 @@ Disjoint sets of rooms (issue 9), all in the `handheld` real-capture regime (`re
   trained on and nobody may tune on;
 - `realcapture-tune` (for tuning): 6 rooms, seeds 8100-8105, training families only;
 - `realcapture-tune2` (for tuning): 12 more rooms, seeds 8200-8211, training families only: with the first
-  set 63 objects, so that a choice is not made on the 30-point swings of a few of 21 objects.
+  set 63 objects, so that a choice is not made on the 30-point swings of a few of 21 objects;
+- `realcapture-tune3` (for tuning): 18 rooms, seeds 8300-8317, the training families and the extra families
+  of the broader prior (`shapes.extra_families`): for the default `furniture` prior these are unseen designs,
+  so the set measures what the held-out set's unseen designs ask without touching them (not so for
+  `furniture_broad`, which trains on them).
 Never tune on `realcapture`; report on it.
 
 Variants (`VARIANTS`) are the same rooms under different conditions: `full` (every condition, 35
@@ -72,6 +76,9 @@ SETS: dict[str, EvalSet] = {
                                 'train', 'tuning (training families only)'),
     'realcapture-tune2': EvalSet('realcapture-tune2', tuple(range(8200, 8212)), tuple(3 + i % 2 for i in range(12)),
                                  'train', 'tuning, second set (training families only)'),
+    'realcapture-tune3': EvalSet('realcapture-tune3', tuple(range(8300, 8318)), tuple(3 + i % 2 for i in range(18)),
+                                 'extra', 'tuning, third set (training and extra families: designs the default '
+                                 'prior has not seen)'),
 }
 
 _HANDHELD = preset_kwargs('handheld')
@@ -258,7 +265,7 @@ def family_table(eval_set: EvalSet, out: Path, variant: str) -> str:
     """Recall, mean F1@5cm and CD of one variant's results split by class and by seen (training) vs held-out
     family (the room's objects are recomposed from the seeds; nothing is rendered)."""
     from frodo_datasets.scene import compose_scene
-    from frodo_datasets.shapes import eval_families
+    from frodo_datasets.shapes import eval_families, extra_families
 
     groups: dict[tuple[str, str], list] = {}
     for scene, seed, n in eval_set.scenes():
@@ -269,7 +276,8 @@ def family_table(eval_set: EvalSet, out: Path, variant: str) -> str:
         config = scene_config(eval_set, seed, n, variant)
         room = compose_scene(config.objects, config.classes, seed=config.seed, family_set=config.family_set)
         for o in room.objects:
-            kind = 'held-out' if o.family in eval_families(o.class_name) else 'training'
+            kind = ('held-out' if o.family in eval_families(o.class_name)
+                    else 'extra' if o.family in extra_families(o.class_name) else 'training')
             groups.setdefault((o.class_name, kind), []).append(pairs.get(o.id))
     lines = ['| class | families | objects | recall % | mean F1@5cm | mean CD cm |', '|---|---|---|---|---|---|']
     for (class_name, kind), found in sorted(groups.items()):

@@ -133,17 +133,21 @@ def _class_list(n_objects: int, classes: Sequence[str]) -> list[str]:
     return [classes[i % len(classes)] for i in range(n_objects)]
 
 
-FAMILY_SETS = ('train', 'all', 'heldout')
+FAMILY_SETS = ('train', 'all', 'heldout', 'extra')
 
 
 def family_pool(class_name: str, family_set: str = 'train') -> list[str]:
     """Families a scene draws from: 'train' (the prior's training families, the default), 'heldout' (the
-    evaluation-only designs of `shapes.eval_families`) or 'all' (both)."""
-    from frodo_datasets.shapes import eval_families, families
+    evaluation-only designs of `shapes.eval_families`), 'all' (both) or 'extra' (the training families and the
+    broader prior's extra ones, `shapes.extra_families`: designs the default prior has not seen that anyone may
+    tune on)."""
+    from frodo_datasets.shapes import eval_families, extra_families, families
 
     if family_set not in FAMILY_SETS:
         raise ValueError(f'family_set must be one of {FAMILY_SETS}, got {family_set!r}')
     pool = [] if family_set == 'heldout' else families(class_name)
+    if family_set == 'extra':
+        return pool + extra_families(class_name)
     return pool + (eval_families(class_name) if family_set != 'train' else [])
 
 

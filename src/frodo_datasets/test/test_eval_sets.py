@@ -5,7 +5,7 @@ import numpy as np
 
 from frodo_datasets.eval_sets import SETS, VARIANTS, family_table, pool, scene_config, table
 from frodo_datasets.scene import compose_scene
-from frodo_datasets.shapes import eval_families
+from frodo_datasets.shapes import eval_families, extra_families, families
 
 
 def _families(eval_set):
@@ -18,15 +18,20 @@ def _families(eval_set):
 
 
 def test_sets_are_disjoint_and_big_enough():
-    held, tune, tune2 = SETS['realcapture'], SETS['realcapture-tune'], SETS['realcapture-tune2']
-    assert not set(held.seeds) & set(tune.seeds) and not set(tune.seeds) & set(tune2.seeds)
-    assert not set(held.seeds) & set(tune2.seeds)
+    held, tune, tune2, tune3 = (SETS[n] for n in ('realcapture', 'realcapture-tune', 'realcapture-tune2',
+                                                  'realcapture-tune3'))
+    seeds = [held.seeds, tune.seeds, tune2.seeds, tune3.seeds]
+    assert len(set().union(*seeds)) == sum(len(s) for s in seeds)
     assert len(held.seeds) >= 12 and sum(held.objects) >= 40
     assert sum(tune.objects) + sum(tune2.objects) >= 60
     held_families = _families(held)
     unseen = [f for c, f in held_families if f in eval_families(c)]
     assert len(unseen) >= 8 and {c for c, f in held_families if f in eval_families(c)} == {'chair', 'dining table'}
-    assert not any(f in eval_families(c) for c, f in _families(tune) + _families(tune2))
+    assert not any(f in eval_families(c) for c, f in _families(tune) + _families(tune2) + _families(tune3))
+    # the third tuning set: designs the default prior has not seen, of both classes, next to training designs
+    third = _families(tune3)
+    assert {c for c, f in third if f in extra_families(c)} == {'chair', 'dining table'}
+    assert sum(f in extra_families(c) for c, f in third) >= 15 and any(f in families(c) for c, f in third)
 
 
 def test_variants_change_one_condition_at_a_time():

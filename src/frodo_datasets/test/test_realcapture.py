@@ -13,7 +13,7 @@ from frodo_datasets.realcapture import (CaptureEffects, blur_vector, distort, di
                                         motion_blur, photometric, preset_kwargs, texture_strength, vignette_gain)
 from frodo_datasets.render import Material, Realism, RenderObject, Renderer, intrinsics
 from frodo_datasets.scene import HandheldPath, compose_scene, family_pool, footprints_overlap, walk_trajectory
-from frodo_datasets.shapes import eval_families, families
+from frodo_datasets.shapes import eval_families, extra_families, families
 from frodo_datasets.synth import SynthConfig, synthesize
 
 W, H = 96, 72
@@ -76,6 +76,8 @@ def test_family_pools():
         assert family_pool(c, 'train') == families(c)
         assert set(family_pool(c, 'heldout')) == set(eval_families(c)) and not set(eval_families(c)) & set(families(c))
         assert family_pool(c, 'all') == families(c) + eval_families(c)
+        assert family_pool(c, 'extra') == families(c) + extra_families(c)
+        assert not set(extra_families(c)) & (set(families(c)) | set(eval_families(c)))
     with pytest.raises(ValueError):
         family_pool('chair', 'test')
 
