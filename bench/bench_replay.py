@@ -151,6 +151,9 @@ def main() -> None:
     node_fill = next(p.default for p in NODE_PARAMS if p.name == 'fill_views')
     ap.add_argument('--fill-views', type=int, default=node_fill, help=f"optim_node's fill_views (default {node_fill}, the node's)")
     ap.add_argument('--dense-fill-views', type=int, default=None, help='fill_views of the dense stage (default: --fill-views)')
+    node_resolution = next(p.default for p in NODE_PARAMS if p.name == 'mesh_resolution')
+    ap.add_argument('--mesh-resolution', type=int, default=node_resolution,
+                    help=f"optim_node's mesh_resolution: marching-cubes grid of the evaluated meshes (default {node_resolution})")
     ap.add_argument('--box', choices=('track', 'oracle'), default='track',
                     help="'oracle': ground-truth boxes instead of the recorded track boxes (see above)")
     args = ap.parse_args()
@@ -169,7 +172,7 @@ def main() -> None:
         preds = {'fused': [], 'sparse': [], 'dense': []}
         floor = None if args.no_floor else floor_height([o[1] for o in objects.values() if o[0] in FLOOR_CLASSES], slam)
         for oid, (name, box, code, views, dviews) in sorted(objects.items()):
-            mesh = prior.mesh(code, resolution=64)
+            mesh = prior.mesh(code, resolution=args.mesh_resolution)
             if mesh is None or len(mesh.faces) == 0:
                 continue
             fused = fused_estimate(oid, name, 0, code, len(views), mesh, box)
@@ -179,7 +182,7 @@ def main() -> None:
             sp = refine(prior, code, box, views, slam, scfg, floor_height=floor, height_range=heights, code_class=name,
                         neighbour_boxes=[o[1] for other, o in objects.items() if other != oid])
             t_sparse = time.perf_counter() - t0
-            smesh = prior.mesh(sp.code, resolution=64) if sp.ok else None
+            smesh = prior.mesh(sp.code, resolution=args.mesh_resolution) if sp.ok else None
             if smesh is None or len(smesh.faces) == 0:
                 preds['sparse'].append(preds['fused'][-1])
                 preds['dense'].append(preds['fused'][-1])
@@ -193,7 +196,7 @@ def main() -> None:
                 landmarks, region = (slam, box) if sp.landmarks is None else (sp.landmarks, None)   # as optim_node
                 dn = refine_dense(prior, sp.code, sp.T_world_object, dviews, landmarks, region, dcfg, floor_height=floor,
                                   height_range=heights)
-                dmesh = prior.mesh(dn.code, resolution=64) if dn.improved else None
+                dmesh = prior.mesh(dn.code, resolution=args.mesh_resolution) if dn.improved else None
                 preds['dense'].append(EvalObject(oid, name, dmesh.copy().apply_transform(dn.T_world_object))
                                       if dmesh is not None and len(dmesh.faces) else preds['sparse'][-1])
                 row['dense_improved'] = bool(dn.improved)
