@@ -32,14 +32,17 @@ FLOOR_CLASSES = ('chair', 'dining table', 'couch', 'bed')   # stand on the floor
 
 
 def floor_height(boxes: Iterable, landmarks: np.ndarray | None = None, search: float = 0.15, layer: float = 0.02,
-                 min_layer_points: int = 20) -> float | None:
+                 min_layer_points: int = 20, lowest_fraction: float = 0.5) -> float | None:
     """Floor height (m, world z) from the bottoms of floor-standing objects' boxes and landmarks; None if no box.
 
     boxes: (centre (3,), size (3,), yaw) of the objects (association boxes of FLOOR_CLASSES).
-    The median bottom is the estimate; when `landmarks` (N, 3) hold a horizontal layer of at least
-    `min_layer_points` points `layer` metres thick within `search` metres of it (the densest such layer), that
-    layer's median z replaces it: the floor's own points are a direct measurement, the box bottoms an
-    inference of the association (which may itself assume a floor).
+    The median bottom is the estimate; when `landmarks` (N, 3) hold horizontal layers of at least
+    `min_layer_points` points `layer` metres thick within `search` metres of it, the lowest layer holding at least
+    `lowest_fraction` of the densest one's points gives the floor (its densest window's median z): the floor's own
+    points are a direct measurement, the box bottoms an inference of the association (which may itself assume a
+    floor). The lowest, not the densest: object parts near the floor (pedestal feet, stretchers, a skirting
+    board) form layers above it, never below (room `realcapture-tune2-8209`: a layer 11 cm up held more points
+    than the floor's and lifted every object off the floor).
     """
     bottoms = [float(c[2]) - 0.5 * float(s[2]) for c, s, _ in boxes
                if np.isfinite(np.asarray(c, dtype=np.float64)).all() and np.isfinite(np.asarray(s, dtype=np.float64)).all()]
@@ -52,8 +55,11 @@ def floor_height(boxes: Iterable, landmarks: np.ndarray | None = None, search: f
         if len(z) >= min_layer_points:
             hi = np.searchsorted(z, z + layer, side='right')       # points in [z_i, z_i + layer]
             counts = hi - np.arange(len(z))
-            i = int(np.argmax(counts))
-            if counts[i] >= min_layer_points:
+            dense = np.flatnonzero(counts >= max(min_layer_points, lowest_fraction * counts.max()))
+            if len(dense):
+                lowest = int(dense[0])
+                # the layer's peak: the densest window starting within one layer thickness of its lowest one
+                i = lowest + int(np.argmax(counts[lowest:hi[lowest]]))
                 floor = float(np.median(z[i:hi[i]]))
     return floor
 

@@ -35,6 +35,18 @@ def test_floor_height_snaps_to_the_densest_landmark_layer_near_the_boxes():
     assert support.floor_height(boxes, far) == pytest.approx(0.105)
 
 
+def test_floor_height_takes_the_lowest_dense_layer_not_a_denser_one_above_it():
+    # realcapture-tune2-8209: feet and stretchers 11 cm up held more landmarks than the floor
+    rng = np.random.default_rng(1)
+    floor = np.c_[rng.uniform(-2, 2, (90, 2)), rng.normal(0, 0.004, 90)]
+    parts = np.c_[rng.uniform(-1, 1, (150, 2)), 0.11 + rng.normal(0, 0.004, 150)]
+    noise = np.c_[rng.uniform(-2, 2, (6, 2)), rng.uniform(-0.15, -0.03, 6)]     # a few stray points below
+    boxes = [_box(0.0, 0.9), _box(0.0, 0.75, 1.0)]
+    assert support.floor_height(boxes, np.concatenate([floor, parts, noise])) == pytest.approx(0.0, abs=0.005)
+    # a layer with too few points (under half the densest) does not count as the floor
+    assert support.floor_height(boxes, np.concatenate([floor[:30], parts])) == pytest.approx(0.11, abs=0.005)
+
+
 def test_floor_energy_values_and_both_directions():
     pts = torch.tensor([[0.0, 0.0, 0.30], [0.1, 0.0, 0.31], [0.0, 0.2, 0.9], [0.3, 0.1, 0.5]], dtype=torch.float64)
     assert float(support.bottom(pts, k=2)) == pytest.approx(0.305)
