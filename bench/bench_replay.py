@@ -196,6 +196,7 @@ def main() -> None:
                 landmarks, region = (slam, box) if sp.landmarks is None else (sp.landmarks, None)   # as optim_node
                 dn = refine_dense(prior, sp.code, sp.T_world_object, dviews, landmarks, region, dcfg, floor_height=floor,
                                   height_range=heights)
+                row['dense_s'], row['dense_best_iteration'] = round(dn.seconds, 1), dn.best_iteration
                 dmesh = prior.mesh(dn.code, resolution=args.mesh_resolution) if dn.improved else None
                 preds['dense'].append(EvalObject(oid, name, dmesh.copy().apply_transform(dn.T_world_object))
                                       if dmesh is not None and len(dmesh.faces) else preds['sparse'][-1])

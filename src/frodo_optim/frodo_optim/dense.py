@@ -62,7 +62,7 @@ SUPPORT_VERTICES = 16   # lowest / highest proxy-mesh vertices that carry E_floo
 class DenseConfig:
     """Parameters of the dense stage (the node's `dense_*` parameters)."""
 
-    iterations: int = 20
+    iterations: int = 40
     max_views: int = 16
     max_seconds: float = 30.0          # wall-clock bound per object; the best state so far is kept
     grid_resolution: int = 32          # proxy volume / marching cubes over [-1, 1]^3 (normalised frame)

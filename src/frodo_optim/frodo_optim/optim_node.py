@@ -53,7 +53,7 @@ from frodo_shape.prior import ShapePrior
 PARAMS = (
     ParamSpec('prior', 'furniture', 'Shipped prior name (frodo_shape/priors/<name>) or path to a prior folder.'),
     ParamSpec('device', 'auto', "Torch device: 'auto' (cuda if available), 'cpu' or 'cuda'."),
-    ParamSpec('mesh_resolution', 64, 'Marching-cubes grid resolution for decoded meshes.'),
+    ParamSpec('mesh_resolution', 96, 'Marching-cubes grid resolution for decoded meshes.'),
     ParamSpec('min_views', 2, 'Views (kept, associated detections) an object needs before it is reconstructed.'),
     ParamSpec('fill_views', 16, 'An object with fewer kept views than this is optimised with its pruned associated '
               'views too (truncated or overlapping; evenly spread) up to this many; 0: kept views only.'),
@@ -90,7 +90,7 @@ PARAMS = (
               'the paper: height inside Category.height_range; support.py); 0 disables.'),
     ParamSpec('dense_enabled', True, 'Run the dense stage (Sec. 4.3 Dense Optimization: SDF decoder, code + 7-DoF '
               'pose) after a successful sparse stage.'),
-    ParamSpec('dense_iterations', 20, 'Adam iterations of the dense stage per object and pass.'),
+    ParamSpec('dense_iterations', 40, 'Adam iterations of the dense stage per object and pass.'),
     ParamSpec('dense_max_seconds', 30.0, 'Wall-clock bound of the dense stage per object (best state kept).'),
     ParamSpec('dense_views', 16, 'Views (spread evenly over the kept ones) used by the dense stage.'),
     ParamSpec('dense_grid_resolution', 32, 'Resolution of the adaptive SDF volume / proxy mesh per iteration.'),
