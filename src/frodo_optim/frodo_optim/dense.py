@@ -68,7 +68,7 @@ class DenseConfig:
     grid_resolution: int = 32          # proxy volume / marching cubes over [-1, 1]^3 (normalised frame)
     grid_coarse: int = 2               # coarse-to-fine factor of the adaptive volume
     surface_points: int = 1024         # proxy-mesh vertices used by Ep
-    rays_per_view: int = 192           # pixels per view and pyramid level
+    rays_per_view: int = 384           # pixels per view and pyramid level
     ray_step: float = 0.04             # normalised units: the unit cube's side (2) / 50
     sharpness: float = 100.0           # zeta, per normalised SDF unit
     r_min: float = 40.0                # detection pyramid bounds (paper: 40, 400 px)

@@ -94,7 +94,7 @@ PARAMS = (
     ParamSpec('dense_max_seconds', 30.0, 'Wall-clock bound of the dense stage per object (best state kept).'),
     ParamSpec('dense_views', 16, 'Views (spread evenly over the kept ones) used by the dense stage.'),
     ParamSpec('dense_grid_resolution', 32, 'Resolution of the adaptive SDF volume / proxy mesh per iteration.'),
-    ParamSpec('dense_rays_per_view', 192, 'Pixels (rays) per view and pyramid level of the dense silhouette.'),
+    ParamSpec('dense_rays_per_view', 384, 'Pixels (rays) per view and pyramid level of the dense silhouette.'),
     ParamSpec('dense_surface_points', 1024, 'Proxy-mesh vertices used by the dense photometric term.'),
     ParamSpec('dense_sharpness', 100.0, 'zeta: SDF-to-logit scale of the ray-accumulated silhouette (per normalised unit).'),
     ParamSpec('dense_crop_size', 96, 'Side of the stored label/colour crop per detection (bounded memory).'),
