@@ -262,8 +262,9 @@ def table(eval_set: EvalSet, out: Path, variants: list[str], markdown: bool = Fa
 
 
 def family_table(eval_set: EvalSet, out: Path, variant: str) -> str:
-    """Recall, mean F1@5cm and CD of one variant's results split by class and by seen (training) vs held-out
-    family (the room's objects are recomposed from the seeds; nothing is rendered)."""
+    """Recall, mean F1@5cm and CD of one variant's results split by class and by family kind: training, extra
+    (the broader prior's, unseen by the default one) or held-out (the room's objects are recomposed from the
+    seeds; nothing is rendered)."""
     from frodo_datasets.scene import compose_scene
     from frodo_datasets.shapes import eval_families, extra_families
 

@@ -146,9 +146,8 @@ def family_pool(class_name: str, family_set: str = 'train') -> list[str]:
     if family_set not in FAMILY_SETS:
         raise ValueError(f'family_set must be one of {FAMILY_SETS}, got {family_set!r}')
     pool = [] if family_set == 'heldout' else families(class_name)
-    if family_set == 'extra':
-        return pool + extra_families(class_name)
-    return pool + (eval_families(class_name) if family_set != 'train' else [])
+    added = {'all': eval_families, 'heldout': eval_families, 'extra': extra_families}.get(family_set)
+    return pool + (added(class_name) if added else [])
 
 
 def compose_scene(n_objects: int = 3, classes: Sequence[str] = ('chair', 'dining table'), seed: int = 0,
