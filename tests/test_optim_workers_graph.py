@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
@@ -107,6 +108,50 @@ def test_the_run_collector_keeps_the_latest_complete_map():
         publish([1, 2])           # e.g. a restarted merger that has not heard of object 0 yet: no DELETE
         assert wait_until(lambda: [m.id for m in collector.snapshot()[0].markers] == [1, 2]
                           and sorted(collector.snapshot()[2]) == [1, 2], 10)
+
+
+def test_the_run_collector_knows_which_nodes_are_behind():
+    """Each node's image counter (`IMAGE_COUNTERS`; workers count as the optimiser; a node that has not counted
+    one yet took 0) against what it was sent: the images played, or for the association node the detections the
+    detection node published. The slowest count paces rate 0; a node behind holds "done" back."""
+    def report(name, **counters):
+        return DiagnosticStatus(name=name, values=[KeyValue(key=k, value=str(v)) for k, v in counters.items()])
+
+    names = ['detection_node', 'association_node', 'shape_node', 'optim_node_0', 'optim_node_1']
+    with RosSession('frodo_test_collector_behind') as session:
+        collector = OutputCollector(session.node, ['optim_node_0', 'optim_node_1'])
+        assert collector.frames_taken(names) is None and collector.behind(names, 40) == []
+        diagnostics = session.node.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 50)
+        assert wait_until(lambda: diagnostics.get_subscription_count() > 0, 10)
+        diagnostics.publish(DiagnosticArray(status=[
+            report('detection_node', frames_received=40, frames_published=38),
+            report('association_node', frames_received=37), report('shape_node', image_received=39),
+            report('optim_node_0', image_received=40), report('optim_node_1'), report('other_node')]))
+        assert wait_until(lambda: collector.frames_taken(names) == 0, 10)
+        assert collector.behind(names, 40) == [('association_node', 37, 38, 'frames_published of detection_node'),
+                                               ('shape_node', 39, 40, 'images played'),
+                                               ('optim_node_1', 0, 40, 'images played')]
+        diagnostics.publish(DiagnosticArray(status=[
+            report('association_node', frames_received=38), report('shape_node', image_received=40),
+            report('optim_node_1', image_received=40)]))
+        assert wait_until(lambda: collector.frames_taken(names) == 38, 10)
+        assert collector.behind(names, 40) == []
+
+
+def test_done_waits_for_images_queued_behind_a_long_callback(tmp_path):
+    """A node reports from a thread of its own, so one stuck in a long callback reports steady counters while
+    images wait in its queue; "done" then also needs every image taken (or LOST_IMAGES_GRACE to pass)."""
+    write_contract_bag(tmp_path / 'in.mcap', frames=4, period=0.05)
+    params = tmp_path / 'params.yaml'
+    params.write_text("'/**':\n  ros__parameters:\n    diagnostics_period: 0.2\n"
+                      'shape_node:\n  ros__parameters:\n    seconds_per_image: 1.0\n'
+                      'optim_node:\n  ros__parameters:\n    act_as_optimiser: true\n    busy_for: 0.1\n')
+    output = io.StringIO()
+    result = run_bag(tmp_path / 'in.mcap', tmp_path / 'out', [params], timeout=30, rate=0,
+                     nodes=(stub('detection_node'), stub('shape_node'), stub('optim_node')), startup_timeout=30,
+                     output=output, progress=False)
+    assert result.exit_code == EXIT_OK and result.done, output.getvalue()
+    assert result.behind == [] and 'images played within' not in output.getvalue()
 
 
 def test_frodo_run_with_two_workers_waits_for_both(tmp_path):

@@ -46,6 +46,11 @@ SUBSCRIPTION_SETTLE = 1.0
 STOP_GRACE = 20.0
 # Consecutive reports (after the bag ended) of an idle optimiser and unchanged node counters that mean "done".
 DONE_REPORTS = 2
+# Seconds after the bag's end that "done" waits for nodes that have not taken every image played (they may be
+# busy in a long callback with images queued; after this the images are taken as lost, and the run says so).
+LOST_IMAGES_GRACE = 10.0
+# Nodes whose image counter counts another node's outputs: (that node, its counter of them).
+UPSTREAM = {'association_node': ('detection_node', 'frames_published')}
 # Per node, the /diagnostics counter of colour images (or of the detections made from them) it has taken:
 # the slowest one paces playback at rate 0 (player.Backpressure).
 IMAGE_COUNTERS = {'detection_node': 'frames_received', 'association_node': 'frames_received',
@@ -62,6 +67,7 @@ class RunResult:
     done: bool = False
     failures: list[NodeExit] = field(default_factory=list)
     seconds: float = 0.0
+    behind: list[tuple[str, int, int, str]] = field(default_factory=list)  # OutputCollector.behind when done
 
 
 def image_counter(name: str) -> str | None:
@@ -112,9 +118,35 @@ class OutputCollector:
         """Images taken by the slowest of `names`, from the counters of their latest reports
         (`IMAGE_COUNTERS`); None while none of them has reported one."""
         with self._lock:
-            counts = [int(reports[-1][1].get(image_counter(name), 0))
-                      for name in names if image_counter(name) and (reports := self._reports.get(name))]
+            counts = [self._latest_count(name, image_counter(name)) for name in names
+                      if image_counter(name) and name in self._reports]
         return min(counts) if counts else None
+
+    def behind(self, names: Sequence[str], images: int) -> list[tuple[str, int, int, str]]:
+        """(name, taken, expected, of what) for each node in `names` that has reported fewer inputs than it
+        was sent: `images` played, or for a node fed by another (`UPSTREAM`) what that one published."""
+        with self._lock:
+            return self._behind(names, images)
+
+    def _behind(self, names: Sequence[str], images: int) -> list[tuple[str, int, int, str]]:
+        late = []
+        for name in names:
+            if not image_counter(name) or name not in self._reports:
+                continue
+            source = UPSTREAM.get(name)
+            if source is None:
+                expected, what = images, 'images played'
+            elif source[0] in self._reports:
+                expected, what = self._latest_count(*source), f'{source[1]} of {source[0]}'
+            else:
+                continue
+            taken = self._latest_count(name, image_counter(name))
+            if taken < expected:
+                late.append((name, taken, expected, what))
+        return late
+
+    def _latest_count(self, name: str, key: str) -> int:
+        return int(self._reports[name][-1][1].get(key, 0))
 
     def missing_reports(self, names: Sequence[str]) -> list[str]:
         """Nodes in `names` that have not reported on /diagnostics yet (so may still be constructing)."""
@@ -128,14 +160,19 @@ class OutputCollector:
             return []
         return [values for _, values in reports]
 
-    def done(self, names: Sequence[str], since: float) -> bool:
+    def done(self, names: Sequence[str], since: float, images: int = 0, grace: float = 0.0) -> bool:
         """The graph has finished what it got before `since`.
 
         CONTRACT.md "Done": the optimiser (every worker) reports `state` idle with `pending_objects` 0, here
         in its last DONE_REPORTS reports after `since`; and, so that frames still queued upstream are not
-        missed, every node in `names` reported the same key/values (counters) in its last DONE_REPORTS reports.
+        missed, every node in `names` reported the same key/values (counters) in its last DONE_REPORTS reports,
+        and each has taken all `images` played -- or `grace` seconds have passed since `since` (images lost
+        in transport never arrive). Why the count: reports come from a thread of their own, so a node busy in
+        one long callback reports steady counters while images still wait in its queue.
         """
         with self._lock:
+            if time.monotonic() - since < grace and self._behind(names, images):
+                return False
             for name in self.optimisers:
                 optimiser = self._recent(name, since)
                 if not optimiser or not all(v.get('state') == 'idle' and v.get('pending_objects') == '0'
@@ -198,7 +235,8 @@ def run_bag(bag: str | os.PathLike, out_dir: str | os.PathLike, params_files: Se
                               f'(CONTRACT.md); it has {", ".join(sorted(player.reader.topics()))}')
         collector = OutputCollector(session.node, [n for n in launcher.node_names if is_optimiser(n)] or [OPTIMISER])
         launcher.start()
-        result.play, result.done = _play_and_wait(player, collector, launcher, timeout, startup_timeout, stop)
+        result.play, result.done, result.behind = _play_and_wait(player, collector, launcher, timeout,
+                                                                 startup_timeout, stop)
         result.records = write_outputs(out, *collector.snapshot())
     finally:
         launcher.shutdown()
@@ -221,13 +259,15 @@ def _viewer_params(out: Path) -> Path:
 
 
 def _play_and_wait(player: Player, collector: OutputCollector, launcher: Launcher, timeout: float,
-                   startup_timeout: float, stop: threading.Event) -> tuple[PlayStats | None, bool]:
-    """Wait for the nodes, play, wait until done; returns (playback stats or None, done)."""
+                   startup_timeout: float, stop: threading.Event
+                   ) -> tuple[PlayStats | None, bool, list[tuple[str, int, int, str]]]:
+    """Wait for the nodes, play, wait until done; returns (playback stats or None, done, the nodes still
+    behind when done: `OutputCollector.behind`)."""
     deadline = time.monotonic() + startup_timeout
     while collector.missing_reports(launcher.node_names) and time.monotonic() < deadline and not stop.is_set():
         stop.wait(0.1)
     if stop.is_set():
-        return None, False
+        return None, False, []
     missing = collector.missing_reports(launcher.node_names)
     if missing:
         launcher.log(f'no diagnostics from {", ".join(missing)} after {startup_timeout:.0f} s; playing anyway')
@@ -249,14 +289,20 @@ def _play_and_wait(player: Player, collector: OutputCollector, launcher: Launche
         launcher.log(f'bag: {problem}')
     finished = time.monotonic()
     deadline = finished + timeout
+    played = stats.published.get(player.output_topic(topics.IMAGE), 0)
+    grace = min(LOST_IMAGES_GRACE, timeout / 2)
     while not stop.is_set() and time.monotonic() < deadline:
-        if collector.done(launcher.node_names, since=finished):
-            return stats, True
+        if collector.done(launcher.node_names, since=finished, images=played, grace=grace):
+            behind = collector.behind(launcher.node_names, played)
+            for name, taken, expected, what in behind:
+                launcher.log(f'{name} took {taken} of the {expected} {what} within {grace:.0f} s of the bag\'s end; '
+                             'the map is built from what the graph got')
+            return stats, True, behind
         stop.wait(0.1)
     if not stop.is_set():
         launcher.log(f'graph not done within {timeout:.0f} s of the bag\'s end ({", ".join(collector.optimisers)} '
                      'idle with 0 pending objects and all node counters steady)')
-    return stats, False
+    return stats, False, []
 
 
 def _exit_code(result: RunResult, interrupted: bool) -> int:

@@ -1,6 +1,7 @@
 """A configurable stand-in node for launcher tests and dry runs of the command line.
 
-It counts images on the contract image topic and reports on /diagnostics; optionally it crashes with a
+It counts images on the contract image topic (optionally taking its time over each) and reports on
+/diagnostics; optionally it crashes with a
 given exit code after a delay, ignores Ctrl-C or stalls in its ROS teardown, and optionally it behaves like
 a minimal optimiser: `state` / `pending_objects` diagnostics and one fixed object (a tetrahedron and its
 box) on the latched /frodo/objects and /frodo/boxes once images have arrived. Launch it under any node name with
@@ -30,6 +31,8 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec('crash_code', 3, 'Exit code used by crash_after.'),
     ParamSpec('act_as_optimiser', False, 'Report state/pending_objects and publish one object after images.'),
     ParamSpec('busy_for', 0.5, 'As optimiser: seconds after the last image during which state is busy.'),
+    ParamSpec('seconds_per_image', 0.0, 'Seconds each image callback takes (a node busy in one long callback; '
+              'its images wait in the queue meanwhile).'),
     ParamSpec('startup_delay', 0.0, 'Seconds the constructor takes (a node loading a big model).'),
     ParamSpec('ignore_sigint', False, 'Ignore SIGINT (a node that hangs on Ctrl-C; SIGTERM still stops it).'),
     ParamSpec('stall_teardown', 0.0, 'Seconds destroy_node blocks in C with the GIL held, deaf to signals '
@@ -58,6 +61,8 @@ class StubNode(FrodoNode):
     def on_image(self, msg: Image) -> None:
         """Count the frame; as optimiser publish the fixed object once."""
         self.count('frames_received')
+        self.count('image_received')   # the shape and optimiser nodes' name for it (run.IMAGE_COUNTERS)
+        time.sleep(float(self.params['seconds_per_image']))
         self.last_image = time.monotonic()
         if self.params['act_as_optimiser'] and not self.object_published:
             self.publish_object(stamp_to_ns(msg.header.stamp))
