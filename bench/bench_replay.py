@@ -5,7 +5,7 @@
     frodo run BAG --out DIR --rate 1 --params nodense.yaml ; kill -INT %1
     # 2. replay the optimiser offline, any number of configurations, scored per object (contract metrics):
     .venv/bin/python bench/bench_replay.py BAG REC.mcap [BAG REC.mcap ...] [--sparse JSON] [--dense JSON|off]
-        [--box oracle] [--json OUT.json]
+        [--box oracle] [--dense-starts N] [--json OUT.json]
 
 Unlike `bench_dense.py stages` (oracle association, ground-truth boxes perturbed), the inputs are exactly what
 `optim_node` receives in the graph: the final `/frodo/tracks` box and `/frodo/object_codes` code of each
@@ -37,7 +37,7 @@ from frodo_common.bag import BagReader
 from frodo_common.categories import BY_NAME, category_by_id
 from frodo_common.evaluation import EvalObject, evaluate, load_ground_truth_bag
 from frodo_optim.core import fused_estimate
-from frodo_optim.dense import DenseConfig, refine_dense
+from frodo_optim.dense import DenseConfig, refine_dense_starts
 from frodo_optim.optim_node import PARAMS as NODE_PARAMS
 from frodo_optim.photometric import dense_view_from_frame
 from frodo_optim.sparse import SparseConfig, ViewStore, refine, view_from_mask
@@ -154,6 +154,10 @@ def main() -> None:
     node_resolution = next(p.default for p in NODE_PARAMS if p.name == 'mesh_resolution')
     ap.add_argument('--mesh-resolution', type=int, default=node_resolution,
                     help=f"optim_node's mesh_resolution: marching-cubes grid of the evaluated meshes (default {node_resolution})")
+    node_starts = next(p.default for p in NODE_PARAMS if p.name == 'dense_starts')
+    ap.add_argument('--dense-starts', type=int, default=node_starts,
+                    help=f"optim_node's dense_starts: dense stage from the sparse result and up to N - 1 of its other "
+                    f"runs' end states (default {node_starts}, the node's)")
     ap.add_argument('--box', choices=('track', 'oracle'), default='track',
                     help="'oracle': ground-truth boxes instead of the recorded track boxes (see above)")
     args = ap.parse_args()
@@ -194,9 +198,11 @@ def main() -> None:
                    'energies': {k: round(v, 4) for k, v in sp.energies.items()}, 'input_energy': round(sp.input_energy, 4)}
             if dense:
                 landmarks, region = (slam, box) if sp.landmarks is None else (sp.landmarks, None)   # as optim_node
-                dn = refine_dense(prior, sp.code, sp.T_world_object, dviews, landmarks, region, dcfg, floor_height=floor,
-                                  height_range=heights)
+                starts = [(sp.code, sp.T_world_object)] + [a[:2] for a in sp.alternatives][:args.dense_starts - 1]
+                dn, row['dense_start'] = refine_dense_starts(prior, starts, dviews, landmarks, region, dcfg,
+                                                             floor_height=floor, height_range=heights)
                 row['dense_s'], row['dense_best_iteration'] = round(dn.seconds, 1), dn.best_iteration
+                row['dense_energies'] = {k: round(v, 4) for k, v in dn.energies.items()}
                 dmesh = prior.mesh(dn.code, resolution=args.mesh_resolution) if dn.improved else None
                 preds['dense'].append(EvalObject(oid, name, dmesh.copy().apply_transform(dn.T_world_object))
                                       if dmesh is not None and len(dmesh.faces) else preds['sparse'][-1])

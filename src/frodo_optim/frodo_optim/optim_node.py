@@ -41,7 +41,7 @@ from frodo_common.node import ERROR, OK, WARN, FrodoNode, run_node
 from frodo_common.frame_cache import FrameCache
 from frodo_common.params import ParamSpec
 from frodo_optim.core import ObjectEstimate, fused_estimate, world_box
-from frodo_optim.dense import DenseConfig, refine_dense
+from frodo_optim.dense import DenseConfig, refine_dense_starts
 from frodo_optim.merge import TABLE_KIND, MapMerger, Retractions
 from frodo_optim.object_map import MapObject, MapWriter, load_maps, map_dirs, worker_map_dir
 from frodo_optim.photometric import ViewBatch, dense_view_from_frame
@@ -91,6 +91,9 @@ PARAMS = (
     ParamSpec('dense_enabled', True, 'Run the dense stage (Sec. 4.3 Dense Optimization: SDF decoder, code + 7-DoF '
               'pose) after a successful sparse stage.'),
     ParamSpec('dense_iterations', 40, 'Adam iterations of the dense stage per object and pass.'),
+    ParamSpec('dense_starts', 3, 'Dense stage from the sparse result and up to N - 1 end states of the sparse '
+              'stage\'s other runs (box, placement hypothesis, code restart); the lowest dense energy wins (1: the '
+              'sparse result only, a third of the dense cost).'),
     ParamSpec('dense_max_seconds', 30.0, 'Wall-clock bound of the dense stage per object (best state kept).'),
     ParamSpec('dense_views', 16, 'Views (spread evenly over the kept ones) used by the dense stage.'),
     ParamSpec('dense_grid_resolution', 32, 'Resolution of the adaptive SDF volume / proxy mesh per iteration.'),
@@ -443,21 +446,22 @@ class OptimNode(FrodoNode):
         refined = self._sparse(estimate, code, box)
         if refined is None or not self.dense_on:
             return
-        sparse, landmarks = refined
+        sparse, landmarks, alternatives = refined
         with self.cond:
             due = (oid in self.force_dense or oid not in self.dense_views_used or not self.pending
                    or views >= float(self.params['dense_rerun_growth']) * self.dense_views_used[oid])
             if not due:
                 self.dense_stale.add(oid)
         if due:
-            self._dense(sparse, box, views, landmarks)
+            self._dense(sparse, box, views, landmarks, alternatives)
         else:
             self.count('dense_deferred')
 
-    def _sparse(self, fused: ObjectEstimate, code: np.ndarray, box) -> tuple[ObjectEstimate, np.ndarray | None] | None:
-        """Sparse stage of one object after its fused stage; publishes and returns the refined estimate and the
-        landmarks it chose for the object (None with `sparse_landmark_filter` off), or None when it fails: the fused
-        result stays, with the reason."""
+    def _sparse(self, fused: ObjectEstimate, code: np.ndarray, box
+                ) -> tuple[ObjectEstimate, np.ndarray | None, list[tuple[np.ndarray, np.ndarray, str]]] | None:
+        """Sparse stage of one object after its fused stage; publishes and returns the refined estimate, the
+        landmarks it chose for the object (None with `sparse_landmark_filter` off) and its other runs' end states
+        (`SparseResult.alternatives`), or None when it fails: the fused result stays, with the reason."""
         config = self.sparse_config()
         with self.cond:
             fill = int(self.params['fill_views'])
@@ -499,12 +503,14 @@ class OptimNode(FrodoNode):
                                              f'{result.seconds:.2f}s')
         self.estimates[fused.object_id] = estimate
         self._publish()
-        return estimate, result.landmarks
+        return estimate, result.landmarks, result.alternatives
 
-    def _dense(self, sparse: ObjectEstimate, box, num_views: int, landmarks: np.ndarray | None) -> None:
+    def _dense(self, sparse: ObjectEstimate, box, num_views: int, landmarks: np.ndarray | None,
+               alternatives: list[tuple[np.ndarray, np.ndarray, str]] = ()) -> None:
         """Dense stage after a successful sparse stage: publishes the dense estimate, or keeps the sparse one
         (with the reason) when the dense result is not better or the stage cannot run. landmarks: the sparse
-        stage's visual-hull landmarks of the object (None: those of the whole map near the box)."""
+        stage's visual-hull landmarks of the object (None: those of the whole map near the box); alternatives:
+        the sparse stage's other end states, further starts (`dense_starts`)."""
         oid = sparse.object_id
         with self.cond:
             views = self.dense_store.views_of(oid, int(self.params['fill_views']))
@@ -514,9 +520,10 @@ class OptimNode(FrodoNode):
         t0 = time.perf_counter()
         if landmarks is not None:
             slam, box = landmarks, None     # already the object's: no box selection
-        result = refine_dense(self.prior, sparse.code, sparse.T_world_object, views, slam, box, self.dense_config(),
-                              should_stop=lambda: self.stopping,   # shutdown does not wait for a whole dense stage
-                              floor_height=floor, height_range=support.class_height_range(sparse.class_name))
+        starts = [(sparse.code, sparse.T_world_object)] + [a[:2] for a in alternatives][:int(self.params['dense_starts']) - 1]
+        result, _ = refine_dense_starts(self.prior, starts, views, slam, box, self.dense_config(),
+                                        should_stop=lambda: self.stopping,   # shutdown does not wait for a dense stage
+                                        floor_height=floor, height_range=support.class_height_range(sparse.class_name))
         self.count('dense_runs')
         self.dense_info[oid] = (f'{result.views} views, {result.iterations} it, {result.seconds:.2f}s '
                                 f'({result.seconds_per_iteration:.2f}s/it): {result.reason}')

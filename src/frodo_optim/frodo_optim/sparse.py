@@ -139,6 +139,9 @@ class SparseResult:
     views: int = 0
     seconds: float = 0.0
     landmarks: np.ndarray | None = None  # (N, 3) the visual-hull landmarks used (`landmark_filter`), for the dense stage
+    # End states (code, T_world_object, placement) of the other runs (box start, placement hypothesis, code
+    # restart) that were not chosen: further starts for the dense stage (`dense.refine_dense_starts`)
+    alternatives: list[tuple[np.ndarray, np.ndarray, str]] = field(default_factory=list)
 
 
 # ------------------------------------------------------------------ view data
@@ -530,11 +533,14 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
         yb, tb, s = candidates[first_input][:3]
         zb, reason = z0, f'input placement kept (energy {input_energy:.4f}, nothing lower found)'
     yb = float(math.atan2(math.sin(yb), math.cos(yb)))
+    alternatives = [(state[2].cpu().numpy().astype(np.float32), pose_matrix(state[3], state[4], math.exp(state[5])),
+                     candidate[3]) for k, ((state, _, _), candidate) in enumerate(runs) if k != chosen and state is not None]
     return SparseResult(zb.cpu().numpy().astype(np.float32), pose_matrix(yb, tb, s), float(s), yb, np.asarray(tb),
                         reason=reason, energies=terms_b, initial_energies=initial_terms, init_yaw=yaw0,
                         placement=source, input_energy=input_energy, iterations=done,
                         best_iteration=best_it, views=len(views), seconds=time.perf_counter() - start,
-                        landmarks=np.asarray(common if chosen > 0 else box_set, np.float32) if cfg.landmark_filter else None)
+                        landmarks=np.asarray(common if chosen > 0 else box_set, np.float32) if cfg.landmark_filter else None,
+                        alternatives=alternatives)
 
 
 class ViewStore:

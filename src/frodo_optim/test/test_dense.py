@@ -10,7 +10,7 @@ from frodo_common.evaluation import point_metrics, sample_surface
 from frodo_common.geometry import look_at
 from frodo_datasets.render import Material, Renderer, RenderObject, intrinsics
 from frodo_optim.dense import (DenseConfig, Rays, dense_silhouette, implicit_surface_points, make_rays,
-                               pyramid_levels, refine_dense, sdf_distance, so3_exp)
+                               pyramid_levels, refine_dense, refine_dense_starts, sdf_distance, so3_exp)
 from frodo_optim.photometric import (LABEL_OBJECT, ViewBatch, dense_view_from_frame, photometric_energy, visible)
 from frodo_optim.sparse import pose_matrix
 from frodo_shape.meshing import sdf_grid
@@ -226,6 +226,23 @@ def test_rollback_keeps_the_input_when_dense_cannot_help(prior, scene):
     assert not bad.improved and 'non-finite' in bad.reason
     none = refine_dense(prior, scene['code'], scene['T'], [])
     assert not none.improved and none.reason == 'no usable views'
+
+
+def test_dense_starts_keep_the_lowest_energy_end_state(prior, scene):
+    """Several starts: a far-off first start (the sparse result in a wrong basin) loses to a later start near the
+    truth, which is then the result (marked improved even without a step); a worse later start never wins."""
+    cfg = DenseConfig(iterations=3, grid_resolution=24, rays_per_view=64)
+    far = pose_matrix(0.7 + 1.2, scene['T'][:3, 3] + [0.15, -0.1, 0.0], 0.4)
+    near = (scene['code'], scene['T'])
+    res, start = refine_dense_starts(prior, [(scene['other'], far), near], scene['views'], config=cfg)
+    assert start == 1 and res.improved and res.reason.startswith('start 1 of 2')
+    first = refine_dense(prior, scene['other'], far, scene['views'], config=cfg)
+    assert res.energies['total'] < first.energies['total']
+    assert np.linalg.norm(res.translation - scene['T'][:3, 3]) < 0.05
+    again, start = refine_dense_starts(prior, [near, (scene['other'], far)], scene['views'], config=cfg)
+    assert start == 0 and again.energies['total'] <= res.energies['total'] + 1e-6
+    single, start = refine_dense_starts(prior, [near], scene['views'], config=cfg)
+    assert start == 0 and single.reason == refine_dense(prior, *near, scene['views'], config=cfg).reason
 
 
 def test_time_limit_bounds_the_stage(prior, scene):

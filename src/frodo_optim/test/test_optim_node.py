@@ -31,7 +31,7 @@ def test_optimiser_serves_callbacks_while_optimising_and_reports_stages(two_chai
     try:
         params = [Parameter('diagnostics_period', value=0.1), Parameter('mesh_resolution', value=32),
                   Parameter('sparse_iterations', value=5), Parameter('dense_grid_resolution', value=20),
-                  Parameter('dense_rays_per_view', value=64),
+                  Parameter('dense_rays_per_view', value=64), Parameter('dense_starts', value=2),
                   # object 1's dense stage runs until its time bound: long enough to probe the node meanwhile
                   Parameter('dense_iterations', value=10_000), Parameter('dense_max_seconds', value=6.0)]
         optim = OptimNode(parameter_overrides=params)

@@ -181,6 +181,13 @@ def test_code_restarts_leave_a_wrong_code_for_a_nearby_training_code(prior, scen
                        SparseConfig(seed=0, placement_search=False, iterations=15, code_restarts=4))
     assert restarted.energies['total'] <= plain.energies['total'] + 1e-6
     assert restarted.placement.startswith('training code'), restarted.placement
+    # the run not chosen (from the box, with the input code) is handed on as a further dense start
+    assert len(restarted.alternatives) == 1
+    code, T, source = restarted.alternatives[0]
+    assert source == 'box' and code.shape == bad.shape and np.isfinite(T).all()
+    assert np.linalg.norm(T[:3, 3] - restarted.translation) > 1e-4 or not np.allclose(code, restarted.code)
+    single = refine(prior, bad, scene['box'], scene['views'], scene['slam'], dataclasses.replace(cfg, code_restarts=0))
+    assert single.alternatives == []       # one run only: nothing else to start from
 
 
 def test_sparse_stage_hands_its_visual_hull_landmarks_to_the_dense_stage(prior, scene):
