@@ -198,9 +198,9 @@ def main() -> None:
                    'energies': {k: round(v, 4) for k, v in sp.energies.items()}, 'input_energy': round(sp.input_energy, 4)}
             if dense:
                 landmarks, region = (slam, box) if sp.landmarks is None else (sp.landmarks, None)   # as optim_node
-                starts = [(sp.code, sp.T_world_object)] + [a[:2] for a in sp.alternatives][:args.dense_starts - 1]
-                dn, row['dense_start'] = refine_dense_starts(prior, starts, dviews, landmarks, region, dcfg,
-                                                             floor_height=floor, height_range=heights)
+                dn, row['dense_start'] = refine_dense_starts(prior, sp.code, sp.T_world_object, dviews, landmarks,
+                                                             region, dcfg, floor_height=floor, height_range=heights,
+                                                             alternatives=sp.alternatives, max_starts=args.dense_starts)
                 row['dense_s'], row['dense_best_iteration'] = round(dn.seconds, 1), dn.best_iteration
                 row['dense_energies'] = {k: round(v, 4) for k, v in dn.energies.items()}
                 dmesh = prior.mesh(dn.code, resolution=args.mesh_resolution) if dn.improved else None

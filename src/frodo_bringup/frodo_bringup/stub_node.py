@@ -1,10 +1,10 @@
 """A configurable stand-in node for launcher tests and dry runs of the command line.
 
 It counts images on the contract image topic (optionally taking its time over each) and reports on
-/diagnostics; optionally it crashes with a
-given exit code after a delay, ignores Ctrl-C or stalls in its ROS teardown, and optionally it behaves like
-a minimal optimiser: `state` / `pending_objects` diagnostics and one fixed object (a tetrahedron and its
-box) on the latched /frodo/objects and /frodo/boxes once images have arrived. Launch it under any node name with
+/diagnostics; optionally it crashes with a given exit code after a delay, ignores Ctrl-C or stalls in its ROS
+teardown, and optionally it behaves like a minimal optimiser: `state` / `pending_objects` diagnostics and one
+fixed object (a tetrahedron and its box) on the latched /frodo/objects and /frodo/boxes once images have
+arrived. Launch it under any node name with
 `-r __node:=NAME`.
 """
 from __future__ import annotations

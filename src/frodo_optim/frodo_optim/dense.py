@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import math
 import time
+from typing import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -269,21 +270,24 @@ def sdf_distance(prior, points_world: torch.Tensor, z: torch.Tensor, R, t, s, tr
 
 
 # ------------------------------------------------------------------ stage
-def refine_dense_starts(prior, starts: list[tuple[np.ndarray, np.ndarray]], views: list[DenseView],
+def refine_dense_starts(prior, code, T_world_object: np.ndarray, views: list[DenseView],
                         slam_points: np.ndarray | None = None, box=None, config: DenseConfig | None = None,
                         should_stop=None, floor_height: float | None = None,
-                        height_range: tuple[float, float] | None = None) -> tuple[DenseResult, int]:
-    """The dense stage from several starts (code, T_world_object), the sparse result first (beyond the paper);
-    returns (the result with the lowest check energy, its start index).
+                        height_range: tuple[float, float] | None = None,
+                        alternatives: Sequence[tuple] = (), max_starts: int = 1) -> tuple[DenseResult, int]:
+    """The dense stage from the sparse result (code, T_world_object) and from up to max_starts - 1 further starts,
+    the (code, T_world_object, ...) of `alternatives` (`SparseResult.alternatives`; beyond the paper); returns
+    (the result with the lowest check energy, its start index: 0 = the sparse result).
 
     Why: on real captures the dense stage ends in a start-dependent basin (the same object from two sparse
-    estimates can differ by 20-30 points of F1@5cm), and its check energy -- same views, rays, landmarks and
-    priors for every start -- picks the better end state about 7 times in 10 (optim README, "Dense starts").
+    estimates ended 20-35 points of F1@5cm apart), and its check energy -- same views, rays, landmarks and
+    priors for every start -- picked the better end state 7 times in 10 (optim README, "Dense starts").
     A later start wins only with a check energy below the first start's best (which is never above the sparse
     result's own), so the result is never worse, by the energy, than the dense stage from the sparse result.
     A result from a later start is marked improved (it replaces the sparse estimate) even if its own run did
-    not lower its energy.
+    not lower its energy. Other arguments as `refine_dense`.
     """
+    starts = [(code, T_world_object)] + [tuple(a[:2]) for a in alternatives][:max(0, int(max_starts) - 1)]
     results = []
     for code, T in starts:
         if results and should_stop is not None and should_stop():

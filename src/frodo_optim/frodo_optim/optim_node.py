@@ -520,10 +520,11 @@ class OptimNode(FrodoNode):
         t0 = time.perf_counter()
         if landmarks is not None:
             slam, box = landmarks, None     # already the object's: no box selection
-        starts = [(sparse.code, sparse.T_world_object)] + [a[:2] for a in alternatives][:int(self.params['dense_starts']) - 1]
-        result, _ = refine_dense_starts(self.prior, starts, views, slam, box, self.dense_config(),
+        result, _ = refine_dense_starts(self.prior, sparse.code, sparse.T_world_object, views, slam, box,
+                                        self.dense_config(),
                                         should_stop=lambda: self.stopping,   # shutdown does not wait for a dense stage
-                                        floor_height=floor, height_range=support.class_height_range(sparse.class_name))
+                                        floor_height=floor, height_range=support.class_height_range(sparse.class_name),
+                                        alternatives=alternatives, max_starts=int(self.params['dense_starts']))
         self.count('dense_runs')
         self.dense_info[oid] = (f'{result.views} views, {result.iterations} it, {result.seconds:.2f}s '
                                 f'({result.seconds_per_iteration:.2f}s/it): {result.reason}')

@@ -234,15 +234,19 @@ def test_dense_starts_keep_the_lowest_energy_end_state(prior, scene):
     cfg = DenseConfig(iterations=3, grid_resolution=24, rays_per_view=64)
     far = pose_matrix(0.7 + 1.2, scene['T'][:3, 3] + [0.15, -0.1, 0.0], 0.4)
     near = (scene['code'], scene['T'])
-    res, start = refine_dense_starts(prior, [(scene['other'], far), near], scene['views'], config=cfg)
+    res, start = refine_dense_starts(prior, scene['other'], far, scene['views'], config=cfg,
+                                     alternatives=[(*near, 'a start near the truth')], max_starts=2)
     assert start == 1 and res.improved and res.reason.startswith('start 1 of 2')
     first = refine_dense(prior, scene['other'], far, scene['views'], config=cfg)
     assert res.energies['total'] < first.energies['total']
     assert np.linalg.norm(res.translation - scene['T'][:3, 3]) < 0.05
-    again, start = refine_dense_starts(prior, [near, (scene['other'], far)], scene['views'], config=cfg)
+    again, start = refine_dense_starts(prior, *near, scene['views'], config=cfg, alternatives=[(scene['other'], far)],
+                                       max_starts=3)
     assert start == 0 and again.energies['total'] <= res.energies['total'] + 1e-6
-    single, start = refine_dense_starts(prior, [near], scene['views'], config=cfg)
-    assert start == 0 and single.reason == refine_dense(prior, *near, scene['views'], config=cfg).reason
+    # max_starts 1 ignores the alternatives: the dense stage from the sparse result alone
+    single, start = refine_dense_starts(prior, scene['other'], far, scene['views'], config=cfg,
+                                        alternatives=[near], max_starts=1)
+    assert start == 0 and single.reason == first.reason
 
 
 def test_time_limit_bounds_the_stage(prior, scene):
