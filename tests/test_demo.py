@@ -17,7 +17,9 @@ BAG = Path(__file__).resolve().parents[1] / 'bags' / 'demo_walk.mcap'
 @pytest.mark.skipif(not BAG.exists(), reason='demo bag missing')
 def test_demo_reconstructs_and_scores_the_demo_bag(tmp_path, capsys):
     out = tmp_path / 'demo'
-    code = cli_demo.main(['--bag', str(BAG), '--out', str(out), '--no-progress', '--timeout', '120'])
+    # the command's own 300 s bound: three dense starts per object take the demo to ~100 s on an idle 2-core VM
+    # and past 120 s on a loaded CI runner (a chair still in its dense stage), which is slow, not wrong
+    code = cli_demo.main(['--bag', str(BAG), '--out', str(out), '--no-progress'])
     printed = capsys.readouterr().out
     assert code == EXIT_OK, printed
     objects = json.loads((out / 'objects.json').read_text())['objects']
