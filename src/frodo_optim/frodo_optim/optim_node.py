@@ -94,7 +94,7 @@ PARAMS = (
     ParamSpec('dense_starts', 3, 'Dense stage from the sparse result and up to N - 1 end states of the sparse '
               'stage\'s other runs (box, placement hypothesis, code restart); the lowest dense energy wins (1: the '
               'sparse result only, a third of the dense cost).'),
-    ParamSpec('dense_max_seconds', 30.0, 'Wall-clock bound of the dense stage per object (best state kept).'),
+    ParamSpec('dense_max_seconds', 30.0, 'Wall-clock bound of one dense run (per object and start; best state kept).'),
     ParamSpec('dense_views', 16, 'Views (spread evenly over the kept ones) used by the dense stage.'),
     ParamSpec('dense_grid_resolution', 32, 'Resolution of the adaptive SDF volume / proxy mesh per iteration.'),
     ParamSpec('dense_rays_per_view', 384, 'Pixels (rays) per view and pyramid level of the dense silhouette.'),
