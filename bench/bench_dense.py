@@ -194,7 +194,8 @@ def stages(args) -> None:
         # support priors as in the node: floor from the (perturbed) boxes, the class height range
         floor = None if args.no_support else floor_height([o['box'] for o in objects], objects[0]['slam'] if objects else None)
         for i, o in enumerate(objects):
-            row = {'bag': Path(bag).name, 'object': i, 'class': o['class'], 'views': len(o['sparse_views'])}
+            row = {'bag': Path(bag).name, 'object': i, 'gt_id': o['gt_id'], 'class': o['class'],
+                   'views': len(o['sparse_views'])}
             centre, size, yaw = o['box']
             for fusion, code in (('vote', fuse_vote(o['codes'], prior.training_codes.cpu())), ('mean', fuse_mean(o['codes']))):
                 mesh = prior.mesh(code, resolution=64)
