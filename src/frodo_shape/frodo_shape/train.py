@@ -199,13 +199,16 @@ def plot_losses(history: dict[str, list[float]], path: Path, title: str) -> None
 
 # ---------------------------------------------------------------- stage 1: joint auto-decoder
 def _training_setup(config: dict, steps: int | None, device: str | None):
-    """Seed torch and set its threads from a training config; returns (train section, seed, steps, device)."""
-    tc = config.get('train', {})
+    """Seed torch and set its threads from a training config; returns (config as run, its train section, seed,
+    steps, device). The config as run carries a `steps` override, so the prior's config.yaml says what was run."""
+    total_steps = int(steps if steps is not None else config.get('train', {}).get('steps', 3000))
+    config = copy.deepcopy(config)
+    tc = config.setdefault('train', {})
+    tc['steps'] = total_steps
     seed = int(config.get('seed', 0))
-    total_steps = int(steps if steps is not None else tc.get('steps', 3000))
     torch.manual_seed(seed)
     torch.set_num_threads(int(tc.get('threads', 2)))
-    return tc, seed, total_steps, choose_device(device)
+    return config, tc, seed, total_steps, choose_device(device)
 
 
 def train_decoder(config: dict, out_dir: str | Path, shapes: list[TrainingShape] | None = None,
@@ -217,7 +220,7 @@ def train_decoder(config: dict, out_dir: str | Path, shapes: list[TrainingShape]
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    tc, seed, total_steps, dev = _training_setup(config, steps, device)
+    config, tc, seed, total_steps, dev = _training_setup(config, steps, device)
     if shapes is None:
         shapes = training_shapes(config, meshes, class_name)
     sampling = SamplingConfig.from_dict(config.get('sampling'))
@@ -459,7 +462,7 @@ def train_encoder(config: dict, prior_dir: str | Path, out_dir: str | Path | Non
     prior_dir = Path(prior_dir)
     out = Path(out_dir) if out_dir is not None else prior_dir
     out.mkdir(parents=True, exist_ok=True)
-    tc, seed, total_steps, dev = _training_setup(config, steps, device)
+    config, tc, seed, total_steps, dev = _training_setup(config, steps, device)
     meta = yaml.safe_load((prior_dir / 'config.yaml').read_text())
     names = [s['name'] for s in yaml.safe_load((prior_dir / 'shapes.yaml').read_text())]
     codes = torch.load(prior_dir / 'decoder.pt', map_location='cpu', weights_only=True)['training_codes'].float()

@@ -85,6 +85,7 @@ def test_tiny_decoder_training_reduces_losses_and_resumes(tmp_path):
     assert len(res2['history']['step']) == 60 and res2['history']['step'][40] == 40
     for f in ('decoder.pt', 'config.yaml', 'shapes.yaml', 'loss_decoder.png'):
         assert (out / f).exists()
+    assert yaml.safe_load((out / 'config.yaml').read_text())['decoder_training']['train']['steps'] == 60  # as run
     prior = ShapePrior.load(out)
     assert prior.training_codes.shape == (3, 64) and prior.training_names == ['prim0', 'prim1', 'prim2']
     assert prior.decode_points(prior.training_codes).shape == (3, 128, 3)
@@ -95,7 +96,7 @@ def test_tiny_encoder_training_reduces_huber_loss(tmp_path, monkeypatch):
     out = tmp_path / 'prior'
     train_decoder(TINY_DECODER, out, shapes=shapes, steps=5, progress=False, device='cpu')
     monkeypatch.setattr('frodo_shape.train.render_set', lambda *a, **k: _fake_renders(len(shapes)))
-    res = train_encoder(TINY_ENCODER, out, shapes=shapes, progress=False, device='cpu')
+    res = train_encoder(TINY_ENCODER, out, shapes=shapes, progress=False, device='cpu', steps=70)
     h = res['history']['huber']
     assert np.mean(h[-10:]) < 0.6 * np.mean(h[:10])
     prior = ShapePrior.load(out)
@@ -104,6 +105,7 @@ def test_tiny_encoder_training_reduces_huber_loss(tmp_path, monkeypatch):
     assert codes.shape == (3, 64) and codes.dtype == np.float32
     meta = yaml.safe_load((out / 'config.yaml').read_text())
     assert meta['encoder']['input_size'] == 64 and 'decoder' in meta
+    assert meta['encoder_training']['train']['steps'] == 70 and TINY_ENCODER['train']['steps'] != 70  # as run
 
 
 def test_encoder_input_scaling():
