@@ -8,14 +8,17 @@ import json
 import numpy as np
 import pytest
 import trimesh
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from visualization_msgs.msg import MarkerArray
 
 from frodo_bringup.outputs import object_records, write_outputs
 from frodo_bringup.player import PlayerError
 from frodo_bringup.run import EXIT_GRAPH_FAILED, EXIT_OK, run_bag
+from frodo_bringup.session import RosSession
 from frodo_bringup.stub_node import TETRAHEDRON_FACES
 from frodo_bringup.testing import stub, write_contract_bag
 from frodo_common import conversions as conv
+from frodo_common import topics
 
 STUB_GRAPH = (stub('detection_node'), stub('optim_node'))
 
@@ -58,6 +61,28 @@ def test_run_reports_a_crashed_node(tmp_path):
     assert (result.play is None or result.play.interrupted) and result.seconds < 15
 
 
+def test_run_ignores_and_names_another_graphs_diagnostics(tmp_path):
+    """Reports of an optim_node this run did not start (another graph in the ROS domain: busy, no image taken)
+    must neither pace playback nor hold off "done"; the run names it. Without the pid check this run never
+    ends (timeout, exit 3)."""
+    write_contract_bag(tmp_path / 'in.mcap', frames=10, period=0.05)
+    busy = DiagnosticArray(status=[DiagnosticStatus(name='optim_node', values=[
+        KeyValue(key=k, value=v) for k, v in {'pid': '999999', 'state': 'optimising', 'pending_objects': '3',
+                                               'image_received': '0'}.items()])])
+    output = io.StringIO()
+    with RosSession('frodo_test_other_graph') as other:
+        publisher = other.node.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
+        other.node.create_timer(0.1, lambda: publisher.publish(busy))
+        result = run_bag(tmp_path / 'in.mcap', tmp_path / 'out', [_params(tmp_path)], timeout=15, rate=0,
+                         nodes=STUB_GRAPH, startup_timeout=30, output=output, progress=False)
+    assert result.exit_code == EXIT_OK and result.done, output.getvalue()
+    assert result.foreign == [('optim_node', '999999')]
+    text = output.getvalue()
+    assert text.count('ignoring /diagnostics of a optim_node with pid 999999') == 1
+    assert 'WARNING: another graph ran in this ROS domain (optim_node (pid 999999))' in text
+    assert 'done: 30 messages played, 1 objects' in text
+
+
 def test_run_rejects_a_missing_bag_before_starting_nodes(tmp_path):
     with pytest.raises(PlayerError, match='bag not found'):
         run_bag(tmp_path / 'missing.mcap', tmp_path / 'out', nodes=STUB_GRAPH)
@@ -85,7 +110,6 @@ def test_outputs_follow_marker_actions_and_prefer_optimiser_info(tmp_path):
 
 def test_run_rejects_bad_bags_at_once_with_exit_2(tmp_path, capsys):
     from frodo_bringup import cli
-    from frodo_common import topics
     from frodo_common.bag import BagWriter
     (tmp_path / 'garbage.mcap').write_text('not a bag\n' * 100)
     assert cli.main(['run', str(tmp_path / 'garbage.mcap'), '--out', str(tmp_path / 'out')]) == 2

@@ -68,6 +68,7 @@ class RunResult:
     failures: list[NodeExit] = field(default_factory=list)
     seconds: float = 0.0
     behind: list[tuple[str, int, int, str]] = field(default_factory=list)  # OutputCollector.behind when done
+    foreign: list[tuple[str, str]] = field(default_factory=list)  # (node, pid) of another graph in this ROS domain
 
 
 def image_counter(name: str) -> str | None:
@@ -80,10 +81,18 @@ class OutputCollector:
     map, CONTRACT.md) and each node's last DONE_REPORTS `/diagnostics` reports (receive time, key/values).
 
     optimisers: the nodes that must all be idle for the graph to be done (the optimiser or its workers).
+    pids: returns {node name: pid of the process started for it, None before it is started} (the launcher's),
+    or None to accept any report. With it, a report whose `pid` is not that process's is dropped: it comes from
+    another graph with the same node names in this ROS domain (or an earlier run's node still exiting), and its
+    counters would otherwise pace playback and decide "done" for this run. `log` says so once per such process.
     """
 
-    def __init__(self, node: Node, optimisers: Sequence[str] = (OPTIMISER,)):
+    def __init__(self, node: Node, optimisers: Sequence[str] = (OPTIMISER,),
+                 pids: Callable[[], dict[str, int | None]] | None = None, log: Callable[[str], None] | None = None):
         self.optimisers = list(optimisers)
+        self.pids = pids
+        self.log = log
+        self.foreign: set[tuple[str, str]] = set()   # (node name, pid) of reports from processes not started here
         self.objects: dict[int, Marker] | None = None
         self.boxes: dict[int, Marker] | None = None
         self.states: dict[int, np.void] = {}
@@ -109,10 +118,24 @@ class OutputCollector:
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
         now = time.monotonic()
-        with self._lock:
-            for status in msg.status:
+        started = self.pids() if self.pids is not None else None
+        for status in msg.status:
+            values = {kv.key: kv.value for kv in status.values}
+            if started is not None and status.name in started and values.get('pid') != str(started[status.name]):
+                self._note_foreign(status.name, values.get('pid', '?'))
+                continue
+            with self._lock:
                 reports = self._reports.setdefault(status.name, collections.deque(maxlen=DONE_REPORTS))
-                reports.append((now, {kv.key: kv.value for kv in status.values}))
+                reports.append((now, values))
+
+    def _note_foreign(self, name: str, pid: str) -> None:
+        with self._lock:
+            first = (name, pid) not in self.foreign
+            self.foreign.add((name, pid))
+        if first and self.log is not None:
+            self.log(f'ignoring /diagnostics of a {name} with pid {pid}, not the one this run started: another '
+                     f'FroDO graph runs in ROS domain {os.environ.get("ROS_DOMAIN_ID", "0")} and its topics mix '
+                     'with this run\'s; give each graph a ROS_DOMAIN_ID of its own')
 
     def frames_taken(self, names: Sequence[str]) -> int | None:
         """Images taken by the slowest of `names`, from the counters of their latest reports
@@ -233,11 +256,14 @@ def run_bag(bag: str | os.PathLike, out_dir: str | os.PathLike, params_files: Se
         if missing:
             raise PlayerError(f'{player.reader.path} has no message on the required input(s) {", ".join(missing)} '
                               f'(CONTRACT.md); it has {", ".join(sorted(player.reader.topics()))}')
-        collector = OutputCollector(session.node, [n for n in launcher.node_names if is_optimiser(n)] or [OPTIMISER])
+        collector = OutputCollector(session.node, [n for n in launcher.node_names if is_optimiser(n)] or [OPTIMISER],
+                                    pids=lambda: {n: launcher.pids.get(n) for n in launcher.node_names},
+                                    log=launcher.log)
         launcher.start()
         result.play, result.done, result.behind = _play_and_wait(player, collector, launcher, timeout,
                                                                  startup_timeout, stop)
         result.records = write_outputs(out, *collector.snapshot())
+        result.foreign = sorted(collector.foreign)
     finally:
         launcher.shutdown()
         session.close()
@@ -322,3 +348,7 @@ def _report(result: RunResult, out: Path, output: TextIO) -> None:
           file=output)
     for failure in result.failures:
         print(f'node failure: {failure.describe()}', file=output)
+    if result.foreign:
+        others = ', '.join(f'{name} (pid {pid})' for name, pid in result.foreign)
+        print(f'WARNING: another graph ran in this ROS domain ({others}); its messages may be mixed into these '
+              'outputs: run again with a ROS_DOMAIN_ID of its own', file=output)
