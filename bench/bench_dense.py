@@ -44,7 +44,7 @@ from frodo_optim.sparse import SparseConfig, pose_matrix, refine, select_views, 
 from frodo_optim.support import class_height_range, floor_height
 from frodo_shape.crops import square_crop
 from frodo_shape.fusion import fuse_mean, fuse_vote
-from frodo_shape.prior import ShapePrior
+from frodo_shape.prior import DEFAULT_PRIOR, ShapePrior
 
 DEPTH_TOPICS = ('/camera/depth/image_raw', '/camera/aligned_depth_to_color/image_raw')  # contract v1.1; synth default
 
@@ -57,7 +57,7 @@ def _machine(threads: int) -> str:
 # ------------------------------------------------------------------ timing
 def timing(args) -> None:
     from frodo_datasets.render import Material, Renderer, RenderObject, intrinsics
-    prior = ShapePrior.load('furniture', device=args.device)
+    prior = ShapePrior.load(DEFAULT_PRIOR, device=args.device)
     chairs = [i for i, c in enumerate(prior.training_classes) if c == 'chair']
     code = prior.training_codes[chairs[3]].cpu().numpy()
     mesh = prior.mesh(code, resolution=64)
@@ -261,7 +261,8 @@ def main(argv=None) -> int:
     s.add_argument('--seed', type=int, default=0)
     s.add_argument('--no-support', action='store_true', help='no floor / class height priors (support.py)')
     s.add_argument('--json', default='')
-    s.add_argument('--prior', default='furniture', help="shipped prior name or prior folder (default 'furniture')")
+    s.add_argument('--prior', default=DEFAULT_PRIOR,
+                   help=f"shipped prior name or prior folder (default {DEFAULT_PRIOR!r}, the nodes')")
     s.add_argument('--code', choices=('encoder', 'oracle'), default='encoder',
                    help="start the sparse stage from the encoders' mean code (default) or from the true shape's "
                         "code (auto-decoder fit to the ground-truth mesh; needs the bag's .gt.json sidecar): is it "

@@ -42,7 +42,7 @@ from frodo_optim.optim_node import PARAMS as NODE_PARAMS
 from frodo_optim.photometric import dense_view_from_frame
 from frodo_optim.sparse import SparseConfig, ViewStore, refine, view_from_mask
 from frodo_optim.support import FLOOR_CLASSES, floor_height
-from frodo_shape.prior import ShapePrior
+from frodo_shape.prior import DEFAULT_PRIOR, ShapePrior
 
 DEPTH_TOPICS = ('/camera/depth/image_raw',)
 
@@ -146,7 +146,8 @@ def main() -> None:
     ap.add_argument('--threads', type=int, default=1)
     ap.add_argument('--no-floor', action='store_true', help='no floor estimate (E_floor off)')
     ap.add_argument('--no-height', action='store_true', help='no class height range (E_size off)')
-    ap.add_argument('--prior', default='furniture', help="shipped prior name or prior folder (default 'furniture'); "
+    ap.add_argument('--prior', default=DEFAULT_PRIOR,
+                    help=f"shipped prior name or prior folder (default {DEFAULT_PRIOR!r}, the nodes'); "
                     'the recording must come from a graph that ran the same prior (its codes)')
     node_fill = next(p.default for p in NODE_PARAMS if p.name == 'fill_views')
     ap.add_argument('--fill-views', type=int, default=node_fill, help=f"optim_node's fill_views (default {node_fill}, the node's)")

@@ -95,8 +95,8 @@ def machine_info(device: str) -> dict[str, Any]:
 def decoder_throughput(device: str, quick: bool) -> dict[str, Any]:
     """SDF decoder queries/s, point decoder shapes/s and mesh extraction seconds of the shipped prior."""
     import torch
-    from frodo_shape.prior import ShapePrior
-    prior = ShapePrior.load('furniture', device=device)
+    from frodo_shape.prior import DEFAULT_PRIOR, ShapePrior
+    prior = ShapePrior.load(DEFAULT_PRIOR, device=device)
     code = prior.training_codes[0].cpu().numpy()
     repeats = 2 if quick else 5
     points = np.random.default_rng(0).uniform(-1, 1, (65536, 3)).astype(np.float32)
@@ -143,8 +143,8 @@ def optimiser_sweep(script: str, views: list[int], iterations: int, repeats: int
         if hasattr(module, 'timing'):
             return _timing_sweep(script, views, iterations, device)
         return {'skipped': f'bench/{script}.py has neither measure(prior, views, iterations, repeats) nor timing'}
-    from frodo_shape.prior import ShapePrior
-    prior = ShapePrior.load('furniture', device=device)
+    from frodo_shape.prior import DEFAULT_PRIOR, ShapePrior
+    prior = ShapePrior.load(DEFAULT_PRIOR, device=device)
     rows = [module.measure(prior, v, iterations, repeats) for v in views]
     return {'script': f'bench/{script}.py', 'rows': rows}
 

@@ -14,7 +14,7 @@ Disjoint sets of rooms (issue 9), all in the `handheld` real-capture regime (`re
 - `realcapture-tune2` (for tuning): 12 more rooms, seeds 8200-8211, training families only: with the first
   set 63 objects, so that a choice is not made on the 30-point swings of a few of 21 objects;
 - `realcapture-tune3` (for tuning): 18 rooms, seeds 8300-8317, the training families and the extra families
-  of the broader prior (`shapes.extra_families`): for the default `furniture` prior these are unseen designs,
+  of the broader prior (`shapes.extra_families`): for the first prior `furniture` these are unseen designs,
   so the set measures what the held-out set's unseen designs ask without touching them (not so for
   `furniture_broad`, which trains on them).
 Never tune on `realcapture`; report on it.

@@ -139,8 +139,8 @@ FAMILY_SETS = ('train', 'all', 'heldout', 'extra')
 def family_pool(class_name: str, family_set: str = 'train') -> list[str]:
     """Families a scene draws from: 'train' (the prior's training families, the default), 'heldout' (the
     evaluation-only designs of `shapes.eval_families`), 'all' (both) or 'extra' (the training families and the
-    broader prior's extra ones, `shapes.extra_families`: designs the default prior has not seen that anyone may
-    tune on)."""
+    broader prior's extra ones, `shapes.extra_families`: designs the first prior `furniture` has not seen that
+    anyone may tune on)."""
     from frodo_datasets.shapes import eval_families, extra_families, families
 
     if family_set not in FAMILY_SETS:

@@ -48,10 +48,10 @@ from frodo_optim.photometric import ViewBatch, dense_view_from_frame
 from frodo_optim.sparse import SparseConfig, ViewStore, refine, select_views, view_from_mask
 from frodo_optim import support
 from frodo_optim.states import OBJECT_STATES, STAGE_REASONS, STAGES, STATES_DTYPE
-from frodo_shape.prior import ShapePrior
+from frodo_shape.prior import DEFAULT_PRIOR, ShapePrior
 
 PARAMS = (
-    ParamSpec('prior', 'furniture', 'Shipped prior name (frodo_shape/priors/<name>) or path to a prior folder.'),
+    ParamSpec('prior', DEFAULT_PRIOR, 'Shipped prior name (frodo_shape/priors/<name>) or path to a prior folder.'),
     ParamSpec('device', 'auto', "Torch device: 'auto' (cuda if available), 'cpu' or 'cuda'."),
     ParamSpec('mesh_resolution', 96, 'Marching-cubes grid resolution for decoded meshes.'),
     ParamSpec('min_views', 2, 'Views (kept, associated detections) an object needs before it is reconstructed.'),

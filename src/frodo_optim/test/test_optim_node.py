@@ -29,7 +29,9 @@ def test_optimiser_serves_callbacks_while_optimising_and_reports_stages(two_chai
     rclpy.init()
     executor = SingleThreadedExecutor()
     try:
-        params = [Parameter('diagnostics_period', value=0.1), Parameter('mesh_resolution', value=32),
+        # prior: the one the scene's chairs and codes come from (conftest)
+        params = [Parameter('prior', value='furniture'),
+                  Parameter('diagnostics_period', value=0.1), Parameter('mesh_resolution', value=32),
                   Parameter('sparse_iterations', value=5), Parameter('dense_grid_resolution', value=20),
                   Parameter('dense_rays_per_view', value=64), Parameter('dense_starts', value=2),
                   # object 1's dense stage runs until its time bound: long enough to probe the node meanwhile

@@ -29,8 +29,9 @@ from frodo_shape.shape_node import OBJECT_CODES_DTYPE
 
 CHAIR = 62
 STAMP = 1_000_000_000
+# prior: the one whose training codes the probe publishes (a code means a shape only to its own decoder)
 FAST = [Parameter('diagnostics_period', value=0.1), Parameter('mesh_resolution', value=24),
-        Parameter('sparse_enabled', value=False)]
+        Parameter('sparse_enabled', value=False), Parameter('prior', value='furniture')]
 
 
 def _optimiser(name: str, *params: Parameter) -> OptimNode:

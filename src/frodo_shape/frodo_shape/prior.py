@@ -21,6 +21,9 @@ from frodo_shape.meshing import marching_cubes, sdf_grid
 from frodo_shape.models import DecoderConfig, EncoderConfig, ImageEncoder, JointDecoder
 
 PRIORS_DIR = Path(__file__).parent / 'priors'
+# The prior shape_node and optim_node load unless told otherwise (both must use the same one: codes are only
+# meaningful to the decoder they were trained with). Chosen on the tuning rooms; see its MODEL_CARD.md, "Decision".
+DEFAULT_PRIOR = 'furniture_broad'
 
 
 def shipped_priors() -> list[str]:

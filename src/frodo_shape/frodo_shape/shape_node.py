@@ -18,11 +18,11 @@ from frodo_common.params import ParamSpec
 from frodo_shape.code_store import CodeStore
 from frodo_shape.crops import square_crop
 from frodo_shape.fusion import fuse_mean, fuse_vote
-from frodo_shape.prior import ShapePrior
+from frodo_shape.prior import DEFAULT_PRIOR, ShapePrior
 from sensor_msgs.msg import Image, PointCloud2
 
 PARAMS = (
-    ParamSpec('prior', 'furniture', 'Shipped prior name (frodo_shape/priors/<name>) or path to a prior folder.'),
+    ParamSpec('prior', DEFAULT_PRIOR, 'Shipped prior name (frodo_shape/priors/<name>) or path to a prior folder.'),
     ParamSpec('device', 'auto', "Torch device for the encoder: 'auto' (cuda if available), 'cpu' or 'cuda'."),
     ParamSpec('fusion', 'mean', "Code fusion (Sec. 4.2): 'mean' or 'vote' (majority of 4 nearest training codes)."),
     ParamSpec('crop_size', 128, 'Side of the square encoder input crop in pixels.'),

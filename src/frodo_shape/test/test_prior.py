@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import torch
 
-from frodo_shape.prior import PRIORS_DIR, ShapePrior, resolve_prior, shipped_priors
+from frodo_shape.prior import DEFAULT_PRIOR, PRIORS_DIR, ShapePrior, resolve_prior, shipped_priors
 
 
 @pytest.fixture(scope='module')
@@ -13,7 +13,7 @@ def prior():
 
 
 def test_shipped_priors_load_with_weights_only_and_have_a_model_card():
-    assert {'furniture', 'furniture_broad'} <= set(shipped_priors())
+    assert {'furniture', 'furniture_broad'} <= set(shipped_priors()) and DEFAULT_PRIOR in shipped_priors()
     for name in shipped_priors():
         for f in ('decoder.pt', 'encoder.pt'):
             blob = torch.load(PRIORS_DIR / name / f, map_location='cpu', weights_only=True)
