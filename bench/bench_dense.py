@@ -35,7 +35,7 @@ import torch
 from frodo_common import conversions as conv
 from frodo_common import topics
 from frodo_common.bag import BagReader
-from frodo_common.evaluation import EvalObject, point_metrics, sample_surface
+from frodo_common.evaluation import point_metrics, sample_surface
 from frodo_common.geometry import look_at
 from frodo_optim.core import place_from_box
 from frodo_optim.dense import DenseConfig, refine_dense

@@ -122,8 +122,8 @@ def test_wait_for_subscribers_settles_until_matches_stop_changing(tmp_path, sess
     late.join()
     # The second subscription came during the settle time: it is matched before playback may start.
     assert player.played_topics([topics.IMAGE, topics.INSTANCES]) == [topics.IMAGE]
-    # Other nodes' subscriptions do not count (a CI run once matched one more: a node of an earlier test sharing
-    # this test's ROS domain, which conftest cycles through 130 ids).
+    # Other nodes' subscriptions do not count: a CI run once matched one more, from a node in this test's ROS
+    # domain (conftest cycles 130 ids over the suite; which node it was is not known).
     ours = session.node.get_name()
     others = [s for s in session.node.get_subscriptions_info_by_topic(topics.IMAGE) if s.node_name != ours]
     assert player._publishers[topics.IMAGE].get_subscription_count() - len(others) == 2

@@ -83,8 +83,8 @@ class OutputCollector:
     optimisers: the nodes that must all be idle for the graph to be done (the optimiser or its workers).
     pids: returns {node name: pid of the process started for it, None before it is started} (the launcher's),
     or None to accept any report. With it, a report whose `pid` is not that process's is dropped: it comes from
-    another graph with the same node names in this ROS domain (or an earlier run's node still exiting), and its
-    counters would otherwise pace playback and decide "done" for this run. `log` says so once per such process.
+    another graph with the same node names in this ROS domain, and its counters would otherwise pace playback and
+    decide "done" for this run. `log` says so once per such process.
     """
 
     def __init__(self, node: Node, optimisers: Sequence[str] = (OPTIMISER,),

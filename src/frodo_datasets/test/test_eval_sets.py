@@ -28,7 +28,8 @@ def test_sets_are_disjoint_and_big_enough():
     unseen = [f for c, f in held_families if f in eval_families(c)]
     assert len(unseen) >= 8 and {c for c, f in held_families if f in eval_families(c)} == {'chair', 'dining table'}
     assert not any(f in eval_families(c) for c, f in _families(tune) + _families(tune2) + _families(tune3))
-    # the third tuning set: designs the first prior `furniture` has not seen, of both classes, next to training designs
+    # the third tuning set: designs the first prior `furniture` has not seen, of both classes, next to training
+    # designs
     third = _families(tune3)
     assert {c for c, f in third if f in extra_families(c)} == {'chair', 'dining table'}
     assert sum(f in extra_families(c) for c, f in third) >= 15 and any(f in families(c) for c, f in third)
