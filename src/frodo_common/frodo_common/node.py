@@ -296,7 +296,6 @@ def run_node(node_factory: Callable[[], Node], args: list[str] | None = None, th
             node.destroy_node()
         rclpy.try_shutdown()
         # Frozen objects are never freed, not even at interpreter exit: nanobind extensions (triton, imported
-        # with torchvision) then print dozens of "leaked instance" lines after every clean stop. Freeing them
-        # makes optim_node's exit ~0.6 s longer (its imports and prior; 2-core VM), well within the stop grace.
+        # with torchvision) then print dozens of "leaked instance" lines after every clean stop.
         gc.unfreeze()
     return 0
