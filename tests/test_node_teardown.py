@@ -72,25 +72,3 @@ def test_a_ctrl_c_while_the_node_modules_import_stops_the_node_process(tmp_path)
             proc.kill()
             proc.communicate()
     assert proc.returncode == 0, out
-
-
-def test_a_clean_stop_frees_the_frozen_startup_objects(tmp_path, probe):
-    """run_node freezes the startup objects (gc.freeze); unless it unfreezes them at the end, interpreter exit
-    cannot free them and nanobind (triton, which torchvision imports) prints dozens of "leaked" lines after
-    every clean stop of shape_node and optim_node."""
-    (tmp_path / 'torchvision_stub.py').write_text('import torchvision  # noqa: F401\n'
-                                                  'from frodo_bringup.stub_node import main  # noqa: E402,F401\n')
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), os.environ.get('PYTHONPATH', '')]))
-    proc = subprocess.Popen([sys.executable, '-m', 'frodo_bringup.node_process', 'torchvision_stub', '--ros-args',
-                             '-r', '__node:=torchvision_stub'], env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
-    try:
-        assert wait_until(lambda: 'torchvision_stub' in probe.get_node_names(), 60)
-        proc.send_signal(signal.SIGINT)
-        out, _ = proc.communicate(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
-    assert proc.returncode == 0, out
-    assert 'leaked' not in out, out

@@ -197,8 +197,7 @@ def freeze_startup_objects() -> int:
     Why: a full collection traverses every tracked object while holding the GIL. A node that allocates many
     short-lived objects (the optimiser's object map is ~40k Point messages per object) triggers full
     collections; over the startup objects each took 0.5-1 s on a loaded 2-core machine and held back the
-    /diagnostics thread (reports up to 2.4 s apart). Objects built at startup live as long as the node anyway;
-    `run_node` unfreezes them once the node is torn down, so that interpreter exit frees them.
+    /diagnostics thread (reports up to 2.4 s apart). Objects built at startup live as long as the node anyway.
     """
     gc.collect()
     gc.freeze()
@@ -295,7 +294,4 @@ def run_node(node_factory: Callable[[], Node], args: list[str] | None = None, th
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
-        # Frozen objects are never freed, not even at interpreter exit: nanobind extensions (triton, imported
-        # with torchvision) then print dozens of "leaked instance" lines after every clean stop.
-        gc.unfreeze()
     return 0
