@@ -27,7 +27,8 @@ import time
 import numpy as np
 
 from frodo_association.config import KEYFRAME_SETTINGS, AssociationConfig
-from frodo_association.evidence import contact_edges, depth_image_to_metres, surface_depths
+from frodo_association.evidence import contact_edges, surface_depths
+from frodo_common.frames import depth_to_metres
 from frodo_association.synthetic import make_scene
 from frodo_association.tracker import Associator, detections_from_instances
 from frodo_common.geometry import invert_transform
@@ -71,7 +72,7 @@ def main() -> int:
         t0 = time.perf_counter()
         if f.depth is not None:
             surface = surface_depths(f.instances, labels, f.K, invert_transform(f.T_world_camera_observed),
-                                     depth_image_to_metres(f.depth))
+                                     depth_to_metres(f.depth))
             t_evidence.append(1e3 * (time.perf_counter() - t0))
         t0 = time.perf_counter()
         contact = contact_edges(f.instances, labels, boxes, surface)

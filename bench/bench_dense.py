@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from frodo_common import conversions as conv
+from frodo_common.frames import depth_to_metres
 from frodo_common import topics
 from frodo_common.bag import BagReader
 from frodo_common.evaluation import point_metrics, sample_surface
@@ -119,8 +120,7 @@ def _objects_of_bag(path: Path, prior, n_views: int, rng):
         if m.topic == topics.IMAGE:
             images[conv.stamp_to_ns(msg.header.stamp)] = conv.image_to_rgb(msg)
         elif m.topic in DEPTH_TOPICS:
-            d = conv.image_to_numpy(msg).astype(np.float32)
-            depths[conv.stamp_to_ns(msg.header.stamp)] = d * 0.001 if msg.encoding == '16UC1' else d
+            depths[conv.stamp_to_ns(msg.header.stamp)] = depth_to_metres(conv.image_to_numpy(msg))
         else:
             slam = conv.cloud_to_xyz(msg)
     out = []

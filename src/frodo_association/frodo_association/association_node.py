@@ -23,7 +23,8 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from visualization_msgs.msg import MarkerArray
 
 from frodo_association.config import CONFIG_DOC, AssociationConfig
-from frodo_association.evidence import contact_edges, depth_image_to_metres, surface_depths
+from frodo_association.evidence import contact_edges, surface_depths
+from frodo_common.frames import depth_to_metres
 from frodo_association.tracker import Associator, detections_from_instances
 from frodo_common import conversions as conv
 from frodo_common import topics
@@ -98,7 +99,7 @@ class AssociationNode(FrodoNode):
         self.count('depth_received')
         if msg.encoding not in ('16UC1', '32FC1'):
             raise conv.ConversionError(f'depth encoding must be 16UC1 (mm) or 32FC1 (m), got {msg.encoding!r}')
-        self.depth_cache[conv.stamp_to_ns(msg.header.stamp)] = depth_image_to_metres(conv.image_to_numpy(msg))
+        self.depth_cache[conv.stamp_to_ns(msg.header.stamp)] = depth_to_metres(conv.image_to_numpy(msg))
         while len(self.depth_cache) > 64:
             self.depth_cache.popitem(last=False)
 

@@ -41,7 +41,8 @@ from scipy.optimize import linear_sum_assignment
 
 from frodo_association.boxes import box_iou, canonical_yaw, clip_boxes
 from frodo_association.config import KEYFRAME_SETTINGS, AssociationConfig
-from frodo_association.evidence import contact_edges, depth_image_to_metres, surface_depths
+from frodo_association.evidence import contact_edges, surface_depths
+from frodo_common.frames import depth_to_metres
 from frodo_association.tracker import Associator
 from frodo_association.synthetic import (BoxObject, SynthFrame, SynthScene, add_noise, make_furniture_scene,
                                         make_scene)
@@ -122,7 +123,7 @@ def run_scene(scene: SynthScene, cfg: AssociationConfig, filt: FilterConfig,
         landmarks = frame.landmarks if frame.landmarks is not None else scene.landmarks
         if (frame.depth is not None and 'depth' in evidence) or (landmarks is not None and 'landmarks' in evidence):
             surface = surface_depths(frame.instances, labels, frame.K, invert_transform(frame.T_world_camera_observed),
-                                     depth_image_to_metres(frame.depth) if 'depth' in evidence and frame.depth
+                                     depth_to_metres(frame.depth) if 'depth' in evidence and frame.depth
                                      is not None else None, landmarks if 'landmarks' in evidence else None)
         contact = contact_edges(frame.instances, labels, boxes, surface) if cfg.box_contact_edges else None
         t0 = time.perf_counter()

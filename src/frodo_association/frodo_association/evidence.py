@@ -32,20 +32,11 @@ def _eroded_masks(instances: np.ndarray, labels: np.ndarray, erode_px: int) -> n
     return out
 
 
-def depth_image_to_metres(depth: np.ndarray) -> np.ndarray:
-    """Contract depth (16UC1 millimetres or 32FC1 metres, 0 or NaN = none) as float32 metres with NaN = none."""
-    d = depth.astype(np.float32)
-    if depth.dtype == np.uint16:
-        d = d / 1000.0
-    d[~(d > 0)] = np.nan
-    return d
-
-
 def mask_depths(instances: np.ndarray, labels: np.ndarray, depth_m: np.ndarray, erode_px: int = 3,
                 min_pixels: int = 20) -> np.ndarray:
     """Median depth (N,) of each instance label's eroded mask (NaN: fewer than min_pixels measurements).
 
-    instances: (H, W) uint16; labels: (N,); depth_m: (H, W) metres, NaN = no measurement (`depth_image_to_metres`).
+    instances: (H, W) uint16; labels: (N,); depth_m: (H, W) metres, NaN = no measurement (`frodo_common.frames.depth_to_metres`).
     """
     out = np.full(len(labels), np.nan)
     if depth_m.shape != instances.shape:

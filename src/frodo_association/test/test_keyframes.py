@@ -4,11 +4,11 @@ published, a spurious detection in one keyframe is not)."""
 import numpy as np
 
 from frodo_association.config import KEYFRAME_SETTINGS, AssociationConfig
-from frodo_association.evidence import (contact_edges, depth_image_to_metres, landmark_depths, mask_depths,
-                                        surface_depths)
+from frodo_association.evidence import contact_edges, landmark_depths, mask_depths, surface_depths
 from frodo_association.segments import complete_truncated_boxes, point_segment_distance
 from frodo_association.synthetic import BoxObject, render_instances
 from frodo_association.tracker import Associator, detections_from_instances
+from frodo_common.frames import depth_to_metres
 from frodo_common.geometry import look_at
 
 CHAIR = 62
@@ -24,7 +24,7 @@ def test_mask_depth_is_the_median_inside_the_eroded_mask():
     depth[20:25, 30:35] = np.nan                   # no measurement
     d = mask_depths(inst, np.array([CHAIR * 256 + 1, CHAIR * 256 + 2]), depth, erode_px=3, min_pixels=20)
     assert d[0] == 2.0 and np.isnan(d[1])
-    mm = depth_image_to_metres(np.array([[0, 1500]], np.uint16))
+    mm = depth_to_metres(np.array([[0, 1500]], np.uint16))
     assert np.isnan(mm[0, 0]) and mm[0, 1] == 1.5
 
 

@@ -43,6 +43,7 @@ import math
 import time
 from typing import Sequence
 from dataclasses import dataclass, field
+from enum import Enum
 
 import numpy as np
 import torch
@@ -98,9 +99,22 @@ class DenseConfig:
     seed: int = 0
 
 
+class DenseStop(Enum):
+    """Why `refine_dense` stopped (a value for callers to act on; `DenseResult.reason` is the text for people).
+    Orthogonal to `DenseResult.improved`: a run stopped by the time limit or an interruption may have improved."""
+
+    COMPLETED = 'completed'                  # every iteration ran
+    TIME_LIMIT = 'time limit'                # DenseConfig.max_seconds reached
+    INTERRUPTED = 'interrupted'              # should_stop() said so (a stopping node)
+    NO_SURFACE = 'no surface'                # the code of some iteration decodes to no surface
+    NON_FINITE_ENERGY = 'non-finite energy'
+    NO_VIEWS = 'no usable views'
+    INVALID_INPUT = 'invalid input'          # non-finite code or pose
+
+
 @dataclass
 class DenseResult:
-    """Outcome of `refine_dense`. improved False: keep the input (sparse) estimate; `reason` says why."""
+    """Outcome of `refine_dense`. improved False: keep the input (sparse) estimate; `stop` and `reason` say why."""
 
     code: np.ndarray
     T_world_object: np.ndarray
@@ -109,6 +123,7 @@ class DenseResult:
     translation: np.ndarray
     improved: bool = False
     reason: str = ''
+    stop: DenseStop = DenseStop.COMPLETED
     energies: dict[str, float] = field(default_factory=dict)
     initial_energies: dict[str, float] = field(default_factory=dict)
     iterations: int = 0
@@ -288,9 +303,10 @@ def refine_dense_starts(prior, code, T_world_object: np.ndarray, views: list[Den
     not lower its energy. Other arguments as `refine_dense`.
     """
     starts = [(code, T_world_object)] + [tuple(a[:2]) for a in alternatives][:max(0, int(max_starts) - 1)]
-    results = []
+    results, skipped = [], False
     for code, T in starts:
         if results and should_stop is not None and should_stop():
+            skipped = True
             break
         results.append(refine_dense(prior, code, T, views, slam_points, box, config, should_stop=should_stop,
                                     floor_height=floor_height, height_range=height_range))
@@ -307,6 +323,8 @@ def refine_dense_starts(prior, code, T_world_object: np.ndarray, views: list[Den
         chosen.improved = True
         chosen.reason = f'start {best} of {len(results)} (E {check(results[0]):.3f} from the sparse result): {chosen.reason}'
     chosen.seconds = sum(r.seconds for r in results)
+    if skipped or any(r.stop is DenseStop.INTERRUPTED for r in results):
+        chosen.stop = DenseStop.INTERRUPTED     # not every start ran to its end: say so, whichever won
     return chosen, best
 
 
@@ -329,17 +347,17 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
     s0 = float(np.linalg.norm(T0[:3, 0]))
     R0 = T0[:3, :3] / max(s0, 1e-12)
 
-    def unchanged(reason: str, **extra) -> DenseResult:
-        return DenseResult(code, T0, s0, R0, T0[:3, 3].copy(), improved=False, reason=reason, views=len(views),
+    def unchanged(stop: DenseStop, reason: str, **extra) -> DenseResult:
+        return DenseResult(code, T0, s0, R0, T0[:3, 3].copy(), improved=False, reason=reason, stop=stop, views=len(views),
                            seconds=time.perf_counter() - start, **extra)
 
     if not (np.isfinite(code).all() and np.isfinite(T0).all() and s0 > 0):
-        return unchanged('non-finite code or pose')
+        return unchanged(DenseStop.INVALID_INPUT, 'non-finite code or pose')
     views = [v for v in views if v is not None and np.isfinite(v.K).all() and np.isfinite(v.T_world_camera).all()
              and (v.labels == LABEL_OBJECT).any()]
     views = select_views(views, cfg.max_views)
     if not views:
-        return unchanged('no usable views')
+        return unchanged(DenseStop.NO_VIEWS, 'no usable views')
 
     dev = torch.device(getattr(prior, 'device', 'cpu'))
     gen = torch.Generator().manual_seed(int(cfg.seed))
@@ -382,7 +400,7 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
     if cfg.optimise_code:
         groups.append({'params': [z], 'lr': cfg.lr_code})
     opt = torch.optim.Adam(groups)
-    best, initial, done, reason_stop = None, None, 0, ''
+    best, initial, done, reason_stop, stop = None, None, 0, '', DenseStop.COMPLETED
     iters = max(0, int(cfg.iterations))
     loop_start = time.perf_counter()
     for it in range(iters + 1):
@@ -390,7 +408,7 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
         grid = sdf_grid(lambda p: prior.sdf_numpy(p, zc.cpu().numpy()), Rg, coarse=max(1, int(cfg.grid_coarse)))
         mesh = marching_cubes(grid)
         if len(mesh.vertices) == 0 or not np.isfinite(grid).all():
-            reason_stop = f'code of iteration {it} has no surface'
+            reason_stop, stop = f'code of iteration {it} has no surface', DenseStop.NO_SURFACE
             break
         volume = torch.as_tensor(np.ascontiguousarray(grid.transpose(2, 1, 0)), device=dev)[None, None].requires_grad_(True)
         R = so3_exp(w * axes) @ R0_t
@@ -435,17 +453,17 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
         if initial is None:
             initial = values
         if not math.isfinite(check):
-            reason_stop = f'energy not finite at iteration {it}'
+            reason_stop, stop = f'energy not finite at iteration {it}', DenseStop.NON_FINITE_ENERGY
             break
         if best is None or check < best[0]:
             best = (check, it, zc.clone(), R.detach().clone(), t.detach().clone(), float(log_s.detach()), values)
         if it == iters:
             break
         if time.perf_counter() - start > cfg.max_seconds:
-            reason_stop = f'time limit {cfg.max_seconds:g}s after {it} iterations'
+            reason_stop, stop = f'time limit {cfg.max_seconds:g}s after {it} iterations', DenseStop.TIME_LIMIT
             break
         if should_stop is not None and should_stop():
-            reason_stop = f'interrupted after {it} iterations'
+            reason_stop, stop = f'interrupted after {it} iterations', DenseStop.INTERRUPTED
             break
         opt.zero_grad(set_to_none=True)
         total.backward()
@@ -462,7 +480,7 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
         done = it + 1
     per_it = (time.perf_counter() - loop_start) / max(done + 1, 1)
     if best is None:
-        return unchanged(reason_stop or 'no iteration', initial_energies=initial or {})
+        return unchanged(stop, reason_stop or 'no iteration', initial_energies=initial or {})
     e_best, best_it, zb, Rb, tb, lsb, values_b = best
     sb = math.exp(lsb)
     T = np.eye(4)
@@ -475,7 +493,7 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
     if reason_stop:
         reason += f'; stopped: {reason_stop}'
     if not improved:
-        return unchanged(reason, energies=values_b, initial_energies=initial, iterations=done,
+        return unchanged(stop, reason, energies=values_b, initial_energies=initial, iterations=done,
                          seconds_per_iteration=per_it)
     return DenseResult(zb.cpu().numpy().astype(np.float32), T, sb, Rb.double().cpu().numpy(), tb.double().cpu().numpy(), True, reason,
-                       values_b, initial, done, best_it, len(views), time.perf_counter() - start, per_it)
+                       stop, values_b, initial, done, best_it, len(views), time.perf_counter() - start, per_it)

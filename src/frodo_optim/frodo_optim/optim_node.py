@@ -25,7 +25,6 @@ service); with resume it starts from a saved map and republishes it at once.
 from __future__ import annotations
 
 import threading
-import time
 from collections import OrderedDict
 
 import numpy as np
@@ -36,81 +35,20 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from frodo_common import conversions as conv
 from frodo_common import topics
-from frodo_common.categories import category_by_id
 from frodo_common.node import ERROR, OK, WARN, FrodoNode, run_node
 from frodo_common.frame_cache import FrameCache
 from frodo_common.params import ParamSpec
-from frodo_optim.core import ObjectEstimate, fused_estimate, world_box
-from frodo_optim.dense import DenseConfig, refine_dense_starts
+from frodo_common.frames import depth_to_metres
+from frodo_optim.config import PARAMS as OPTIM_PARAMS, optim_config
+from frodo_optim.core import ObjectEstimate
 from frodo_optim.merge import TABLE_KIND, MapMerger, Retractions
 from frodo_optim.object_map import MapObject, MapWriter, load_maps, map_dirs, worker_map_dir
-from frodo_optim.photometric import ViewBatch, dense_view_from_frame
-from frodo_optim.sparse import SparseConfig, ViewStore, refine, select_views, view_from_mask
-from frodo_optim import support
-from frodo_optim.states import OBJECT_STATES, STAGE_REASONS, STAGES, STATES_DTYPE
-from frodo_shape.prior import DEFAULT_PRIOR, ShapePrior
+from frodo_optim.reconstructor import ObjectInput, ObjectReconstructor, Scene, StageOutcome
+from frodo_optim.states import OBJECT_STATES, STAGES, STATES_DTYPE
+from frodo_optim.views import ViewMemory
+from frodo_shape.prior import ShapePrior
 
-PARAMS = (
-    ParamSpec('prior', DEFAULT_PRIOR, 'Shipped prior name (frodo_shape/priors/<name>) or path to a prior folder.'),
-    ParamSpec('device', 'auto', "Torch device: 'auto' (cuda if available), 'cpu' or 'cuda'."),
-    ParamSpec('mesh_resolution', 96, 'Marching-cubes grid resolution for decoded meshes.'),
-    ParamSpec('min_views', 2, 'Views (kept, associated detections) an object needs before it is reconstructed.'),
-    ParamSpec('fill_views', 16, 'An object with fewer kept views than this is optimised with its pruned associated '
-              'views too (truncated or overlapping; evenly spread) up to this many; 0: kept views only.'),
-    ParamSpec('code_change_tolerance', 0.02,
-              'Re-decode the mesh only when the fused code moved by more than this (relative L2); '
-              'box updates alone just re-place the cached mesh.'),
-    ParamSpec('sparse_enabled', True, "Run the sparse stage (Sec. 4.3: yaw search + silhouette/SLAM-point "
-              "optimisation) after the fused stage; false publishes the fused placement only."),
-    ParamSpec('sparse_iterations', 40, 'Adam iterations of the sparse stage per object and pass.'),
-    ParamSpec('sparse_views', 16, 'Views (spread evenly over the kept ones) used by the sparse stage.'),
-    ParamSpec('sparse_views_stored', 64, 'Views remembered per object (thinned evenly beyond this; bounded memory).'),
-    ParamSpec('sparse_mask_samples', 96, 'Pixels sampled on each mask for the mask-to-points chamfer half.'),
-    ParamSpec('sparse_point_samples', 384, 'Decoded points (of 2048) matched against the mask samples.'),
-    ParamSpec('sparse_yaw_candidates', 24, 'Yaw angles of the exhaustive initial search about gravity.'),
-    ParamSpec('sparse_w_silhouette', 1.0, 'Weight of the silhouette energy Es (2D chamfer, box diagonals).'),
-    ParamSpec('sparse_w_geometry', 0.5, 'Weight of the SLAM-point energy Eg (truncated 3D chamfer); 0 disables.'),
-    ParamSpec('sparse_w_code', 0.01, 'Weight of the code regulariser Er (squared code z-score w.r.t. training codes).'),
-    ParamSpec('sparse_optimise_code', True, 'Optimise the shape code too (false: pose only).'),
-    ParamSpec('sparse_lr_code', 0.02, 'Adam step size of the shape code in the sparse stage.'),
-    ParamSpec('sparse_w_photometric', 0.0, 'Weight of the sparse photometric energy Ep (Eq. 5, visibility-aware; '
-              'needs dense_enabled for the colour crops); 0 disables.'),
-    ParamSpec('sparse_placement_search', True, 'Also start the sparse stage from placement hypotheses (placement.py: '
-              'ray-crossing centres, silhouette scales) for a badly wrong association box; a hypothesis replaces the box '
-              'start only when clearly better on common landmarks and silhouettes (README "Placement").'),
-    ParamSpec('sparse_code_restarts', 4, 'Also start the sparse stage from the best of this many lowest-energy '
-              'training codes of the object\'s class (beyond the paper; 0: off; README "Code freedom").'),
-    ParamSpec('sparse_landmark_filter', True, 'Only landmarks in the detections\' visual hull (on the masks in '
-              '>= 75 % of the views that count; a view where one falls on another detection counts only if it lies in '
-              'a neighbour\'s box) enter Eg, in the sparse and the dense stage; false: every landmark near the box '
-              '(the paper\'s setting; README "Landmarks in the visual hull").'),
-    ParamSpec('support_w_floor', 0.05, 'Weight of the floor prior E_floor in the sparse and dense stages (beyond the '
-              'paper: the lowest points on the floor estimated from the boxes and landmarks; support.py); 0 disables.'),
-    ParamSpec('support_w_height', 1.0, 'Weight of the class height prior E_size in the sparse and dense stages (beyond '
-              'the paper: height inside Category.height_range; support.py); 0 disables.'),
-    ParamSpec('dense_enabled', True, 'Run the dense stage (Sec. 4.3 Dense Optimization: SDF decoder, code + 7-DoF '
-              'pose) after a successful sparse stage.'),
-    ParamSpec('dense_iterations', 40, 'Adam iterations of the dense stage per object and pass.'),
-    ParamSpec('dense_starts', 3, 'Dense stage from the sparse result and up to N - 1 end states of the sparse '
-              'stage\'s other runs (box, placement hypothesis, code restart); the lowest dense energy wins (1: the '
-              'sparse result only, a third of the dense cost).'),
-    ParamSpec('dense_max_seconds', 30.0, 'Wall-clock bound of one dense run (per object and start; best state kept).'),
-    ParamSpec('dense_views', 16, 'Views (spread evenly over the kept ones) used by the dense stage.'),
-    ParamSpec('dense_grid_resolution', 32, 'Resolution of the adaptive SDF volume / proxy mesh per iteration.'),
-    ParamSpec('dense_rays_per_view', 384, 'Pixels (rays) per view and pyramid level of the dense silhouette.'),
-    ParamSpec('dense_surface_points', 1024, 'Proxy-mesh vertices used by the dense photometric term.'),
-    ParamSpec('dense_sharpness', 100.0, 'zeta: SDF-to-logit scale of the ray-accumulated silhouette (per normalised unit).'),
-    ParamSpec('dense_crop_size', 96, 'Side of the stored label/colour crop per detection (bounded memory).'),
-    ParamSpec('dense_w_silhouette', 1.0, 'Weight of the dense silhouette energy (Eq. 8/9).'),
-    ParamSpec('dense_w_photometric', 2.0, 'Weight of the dense photometric energy (Eq. 5 on the proxy surface).'),
-    ParamSpec('dense_w_geometry', 0.5, 'Weight of the landmark term (|SDF| at SLAM points, truncated).'),
-    ParamSpec('dense_w_depth', 0.5, 'Weight of the registered-depth term (|SDF| at masked depth pixels), when depth is present.'),
-    ParamSpec('dense_w_code', 0.01, 'Weight of the code regulariser in the dense stage.'),
-    ParamSpec('dense_lr_code', 0.02, 'Adam step size of the shape code in the dense stage.'),
-    ParamSpec('dense_upright', False, 'Dense stage rotates objects about gravity (world z) only; false: any rotation '
-              '(the paper\'s 7-DoF pose).'),
-    ParamSpec('dense_rerun_growth', 1.25, 'While other objects wait, re-run an object\'s dense stage only when its '
-              'views grew by this factor; the rest are caught up when the queue is empty.'),
+PARAMS = OPTIM_PARAMS + (
     ParamSpec('image_topic', topics.IMAGE, 'Colour image topic (dense stage and photometric terms).'),
     ParamSpec('depth_topic', '/camera/depth/image_raw', "Optional registered depth (16UC1 mm or 32FC1 m); '' disables."),
     ParamSpec('camera_info_topic', topics.CAMERA_INFO, 'Camera intrinsics topic.'),
@@ -136,11 +74,11 @@ class OptimNode(FrodoNode):
         if not 0 <= self.worker_index < self.worker_count:
             raise ValueError(f'worker_index {self.worker_index} must be in 0..worker_count-1 '
                              f'(worker_count {self.worker_count})')
-        self.prior = ShapePrior.load(self.params['prior'], device=self.params['device'])
+        self.config = optim_config({spec.name: self.params[spec.name] for spec in OPTIM_PARAMS})
+        self.reconstructor = ObjectReconstructor(ShapePrior.load(self.config.prior, device=self.config.device),
+                                                 self.config)
         self.tracks: dict[int, tuple[str, tuple]] = {}             # id -> (class, (centre, size, yaw))
         self.codes: dict[int, tuple[int, int, np.ndarray]] = {}     # id -> (category, views, code)
-        self.estimates: dict[int, ObjectEstimate] = {}
-        self.mesh_cache: dict[int, tuple[np.ndarray, object]] = {}  # id -> (code, normalised mesh)
         self.mesh_markers: dict[int, tuple[ObjectEstimate, Marker]] = {}   # id -> (estimate, its mesh marker)
         self.retractions = Retractions()                            # published once, now gone: DELETE every time
         self.resumed: dict[int, int] = {}                           # id -> views of its saved estimate (not re-run yet)
@@ -148,19 +86,14 @@ class OptimNode(FrodoNode):
         self.busy: int | None = None                                # id of the object being reconstructed
         self.cond = threading.Condition()
         self.stopping = False
-        self.view_store = ViewStore(int(self.params['sparse_views_stored']))
-        self.dense_store = ViewStore(int(self.params['sparse_views_stored']), capacity=1000)  # same keys
+        self.views = ViewMemory(self.config)
         self.slam_points: np.ndarray | None = None
-        self.sparse_info: dict[int, str] = {}                       # id -> last sparse outcome
-        self.dense_info: dict[int, str] = {}                        # id -> last dense outcome
-        self.dense_views_used: dict[int, int] = {}                  # id -> associated views at its last dense run
+        self.stage_info: dict[str, dict[int, str]] = {'sparse': {}, 'dense': {}}   # stage -> id -> last outcome
         self.dense_stale: set[int] = set()                          # dense deferred; run when the queue empties
         self.force_dense: set[int] = set()
-        self.dense_on = bool(self.params['sparse_enabled'] and self.params['dense_enabled'])
         self.depth_cache: OrderedDict[int, np.ndarray] = OrderedDict()
-        parts = ('detections', 'associations', 'pose') + (('image',) if self.dense_on else ())
+        parts = ('detections', 'associations', 'pose') + (('image',) if self.config.dense_on else ())
         self.frames = FrameCache(parts, int(self.params['frame_cache_size']))
-        self.rng = np.random.default_rng(0)
         # Alone or worker 0: the contract topics; worker k >= 1: its share topics, merged by worker 0.
         sharing = self.worker_index > 0
         self.objects_pub = self.create_publisher(
@@ -190,13 +123,13 @@ class OptimNode(FrodoNode):
                                  topics.LATCHED_QOS)
         self.create_subscription(PointCloud2, topics.OBJECT_CODES, self.guarded(self._on_codes, 'object_codes'),
                                  topics.LATCHED_QOS)
-        if self.params['sparse_enabled']:
+        if self.config.sparse_enabled:
             for msg_type, topic, part in ((Image, topics.DETECTIONS, 'detections'),
                                           (PointCloud2, topics.ASSOCIATIONS, 'associations'),
                                           (PoseStamped, self.params['pose_topic'], 'pose')):
                 self.create_subscription(msg_type, topic, self.guarded(lambda m, p=part: self._on_frame_part(m, p), part),
                                          topics.FRAME_QOS)
-            if self.dense_on:
+            if self.config.dense_on:
                 self.create_subscription(Image, self.params['image_topic'],
                                          self.guarded(lambda m: self._on_frame_part(m, 'image'), 'image'),
                                          topics.FRAME_QOS)
@@ -213,6 +146,15 @@ class OptimNode(FrodoNode):
     def owns(self, object_id: int) -> bool:
         """True for the objects this worker reconstructs (all of them with one worker)."""
         return object_id % self.worker_count == self.worker_index
+
+    @property
+    def estimates(self) -> dict[int, ObjectEstimate]:
+        """The current estimate of each of this worker's objects (the reconstructor's map)."""
+        return self.reconstructor.estimates
+
+    @estimates.setter
+    def estimates(self, value: dict[int, ObjectEstimate]) -> None:
+        self.reconstructor.estimates = value
 
     # ------------------------------------------------------------ inputs
     def _on_tracks(self, msg: MarkerArray) -> None:
@@ -270,9 +212,7 @@ class OptimNode(FrodoNode):
         self.count('depth_received')
         if msg.encoding not in ('16UC1', '32FC1'):
             raise conv.ConversionError(f'depth encoding must be 16UC1 (mm) or 32FC1 (m), got {msg.encoding!r}')
-        depth = conv.image_to_numpy(msg).astype(np.float32)
-        if msg.encoding == '16UC1':
-            depth *= 0.001
+        depth = depth_to_metres(conv.image_to_numpy(msg))
         with self.cond:
             self.depth_cache[conv.stamp_to_ns(msg.header.stamp)] = depth
             while len(self.depth_cache) > 64:
@@ -288,10 +228,8 @@ class OptimNode(FrodoNode):
         stamp = conv.stamp_to_ns(msg.header.stamp)
         if part == 'associations' and stamp in self.frames.completed:
             rows = conv.cloud_to_table(msg)       # a re-send after merges: move the stored views
-            owners = {int(r['label']): (int(r['object_id']), bool(r['kept'])) for r in rows}
             with self.cond:
-                self.view_store.assign(stamp, owners)
-                self.dense_store.assign(stamp, owners)
+                self.views.assign(stamp, rows)
             return
         frame = self.frames.add(stamp, part, msg)
         if frame is not None:
@@ -320,9 +258,8 @@ class OptimNode(FrodoNode):
         if not np.isfinite(T).all():
             raise conv.ConversionError('non-finite camera pose')
         rows = conv.cloud_to_table(frame.parts['associations'])
-        detected = labels > 0
         rgb = depth = None
-        if self.dense_on:
+        if self.config.dense_on:
             rgb = conv.image_to_rgb(frame.parts['image'])
             if rgb.shape[:2] != (height, width):
                 raise conv.ConversionError(f'image {rgb.shape[1]}x{rgb.shape[0]} does not match camera_info {width}x{height}')
@@ -332,49 +269,10 @@ class OptimNode(FrodoNode):
                 self.report_error('depth', f'depth {depth.shape[1]}x{depth.shape[0]} is not registered to the '
                                            f'{width}x{height} colour image; ignored', counter='warnings')
                 depth = None
-        for r in rows:   # all rows: ids of past frames are assigned or changed later by re-sends
-            if r['object_id'] >= 0 and not self.owns(int(r['object_id'])):
-                continue     # another worker's object (a later merge into one of ours loses this view)
-            mask = labels == r['label']
-            view = view_from_mask(K, T, mask, int(self.params['sparse_mask_samples']), detected & ~mask, self.rng)
-            if view is None:
-                self.count('views_rejected')
-                continue
-            key = (frame.stamp_ns, int(r['label']), int(r['object_id']), bool(r['kept']))
-            dense_view = None
-            if self.dense_on:
-                dense_view = dense_view_from_frame(K, T, mask, detected & ~mask, rgb, depth,
-                                                   size=int(self.params['dense_crop_size']), rng=self.rng)
-            with self.cond:
-                self.view_store.add(*key, view)
-                if dense_view is not None:
-                    self.dense_store.add(*key, dense_view)
-            self.count('views_stored')
-
-    def sparse_config(self) -> SparseConfig:
-        p = self.params
-        return SparseConfig(iterations=int(p['sparse_iterations']), max_views=int(p['sparse_views']),
-                            mask_samples=int(p['sparse_mask_samples']), point_samples=int(p['sparse_point_samples']),
-                            yaw_candidates=int(p['sparse_yaw_candidates']), w_silhouette=float(p['sparse_w_silhouette']),
-                            w_geometry=float(p['sparse_w_geometry']), w_code=float(p['sparse_w_code']),
-                            optimise_code=bool(p['sparse_optimise_code']), lr_code=float(p['sparse_lr_code']),
-                            w_photometric=float(p['sparse_w_photometric']),
-                            placement_search=bool(p['sparse_placement_search']),
-                            code_restarts=int(p['sparse_code_restarts']), w_floor=float(p['support_w_floor']),
-                            landmark_filter=bool(p['sparse_landmark_filter']),
-                            w_height=float(p['support_w_height']))
-
-    def dense_config(self) -> DenseConfig:
-        p = self.params
-        return DenseConfig(iterations=int(p['dense_iterations']), max_views=int(p['dense_views']),
-                           max_seconds=float(p['dense_max_seconds']), grid_resolution=int(p['dense_grid_resolution']),
-                           rays_per_view=int(p['dense_rays_per_view']), surface_points=int(p['dense_surface_points']),
-                           sharpness=float(p['dense_sharpness']), w_silhouette=float(p['dense_w_silhouette']),
-                           w_photometric=float(p['dense_w_photometric']), w_geometry=float(p['dense_w_geometry']),
-                           w_depth=float(p['dense_w_depth']), w_code=float(p['dense_w_code']),
-                           lr_code=float(p['dense_lr_code']), upright=bool(p['dense_upright']),
-                           w_floor=float(p['support_w_floor']),
-                           w_height=float(p['support_w_height']))
+        with self.cond:
+            stored, rejected = self.views.add_frame(frame.stamp_ns, K, T, labels, rows, rgb, depth, self.owns)
+        self.count('views_stored', stored)
+        self.count('views_rejected', rejected)
 
     # ------------------------------------------------------------ worker
     def _work(self) -> None:
@@ -403,155 +301,48 @@ class OptimNode(FrodoNode):
                     self.force_dense.discard(oid)
 
     def _reconstruct(self, oid: int, track, codes) -> None:
-        if track is None or codes is None or codes[1] < int(self.params['min_views']):
+        if track is None or codes is None or codes[1] < self.config.min_views:
             # A resumed object stays until the association deletes its track: its fused code may come first.
             if track is None and oid in self.estimates and oid not in self.resumed:
-                del self.estimates[oid]
+                self.reconstructor.forget(oid)
                 self._publish()
             return
-        if oid in self.resumed and self.params['sparse_enabled']:
+        if oid in self.resumed and self.config.sparse_enabled:
             # A restarted worker has none of the views its saved estimate came from: keep that estimate until
             # as many new ones as a sparse pass uses (or as it had) are in, so a re-run is not worse for want
             # of views.
-            needed = max(int(self.params['min_views']), min(self.resumed[oid], int(self.params['sparse_views'])))
+            needed = max(self.config.min_views, min(self.resumed[oid], self.config.sparse.max_views))
             with self.cond:
-                stored = len(self.view_store.views_of(oid))
+                stored = self.views.count(oid)
             if stored < needed:
                 self.count('resumed_waiting_for_views')
                 return
         self.resumed.pop(oid, None)
         class_name, box = track
         category, views, code = codes
-        start = time.perf_counter()
-        cached = self.mesh_cache.get(oid)
-        tol = float(self.params['code_change_tolerance'])
-        if cached is None or np.linalg.norm(code - cached[0]) > tol * max(np.linalg.norm(cached[0]), 1e-6):
-            mesh = self.prior.mesh(code, resolution=int(self.params['mesh_resolution']))
-            if mesh is None or len(mesh.faces) == 0:
-                raise RuntimeError('decoded shape has no surface (code far from the prior?)')
-            self.mesh_cache[oid] = (code, mesh)
-            self.count('meshes_decoded')
-        mesh = self.mesh_cache[oid][1]
-        known = category_by_id(category)
-        estimate = fused_estimate(oid, known.name if known else class_name, category, code, views, mesh, box)
-        estimate.timings['fused_s'] = time.perf_counter() - start
-        estimate.stage_reason = STAGE_REASONS.index('in progress' if self.params['sparse_enabled']
-                                                    else 'sparse stage disabled')
-        previous = self.estimates.get(oid)
-        if previous is None or previous.stage == 'fused' or not self.params['sparse_enabled']:
-            self.estimates[oid] = estimate        # a refined object keeps its last refinement until the next one
-            self._publish()
-        if not self.params['sparse_enabled']:
-            return
-        refined = self._sparse(estimate, code, box)
-        if refined is None or not self.dense_on:
-            return
-        sparse, landmarks, alternatives = refined
         with self.cond:
-            due = (oid in self.force_dense or oid not in self.dense_views_used or not self.pending
-                   or views >= float(self.params['dense_rerun_growth']) * self.dense_views_used[oid])
-            if not due:
+            scene = Scene(self.slam_points, dict(self.tracks))
+            others_waiting = bool(self.pending) and oid not in self.force_dense
+        outcome = self.reconstructor.reconstruct(
+            ObjectInput(oid, class_name, category, box, code, views), self.views, scene,
+            others_waiting=others_waiting, should_stop=lambda: self.stopping,   # shutdown does not wait for dense
+            on_stage=self._on_stage)
+        if outcome.error:
+            raise RuntimeError(outcome.error)
+        if outcome.dense_deferred:
+            with self.cond:
                 self.dense_stale.add(oid)
-        if due:
-            self._dense(sparse, box, views, landmarks, alternatives)
-        else:
             self.count('dense_deferred')
 
-    def _sparse(self, fused: ObjectEstimate, code: np.ndarray, box
-                ) -> tuple[ObjectEstimate, np.ndarray | None, list[tuple[np.ndarray, np.ndarray, str]]] | None:
-        """Sparse stage of one object after its fused stage; publishes and returns the refined estimate, the
-        landmarks it chose for the object (None with `sparse_landmark_filter` off) and its other runs' end states
-        (`SparseResult.alternatives`), or None when it fails: the fused result stays, with the reason."""
-        config = self.sparse_config()
-        with self.cond:
-            fill = int(self.params['fill_views'])
-            views = self.view_store.views_of(fused.object_id, fill)
-            colour = select_views(self.dense_store.views_of(fused.object_id, fill), config.max_views)
-            slam = self.slam_points
-            floor = support.scene_floor(self.tracks, slam)
-            neighbours = [b for oid, (_, b) in self.tracks.items() if oid != fused.object_id]
-        t0 = time.perf_counter()
-        photometric = ViewBatch(colour) if colour and config.w_photometric > 0 else None   # sparse runs on CPU
-        result = refine(self.prior, code, box, views, slam, config, photometric=photometric, floor_height=floor,
-                        height_range=support.class_height_range(fused.class_name), code_class=fused.class_name,
-                        neighbour_boxes=neighbours)
-        self.count('sparse_runs')
-        if not result.ok:
-            self.count('sparse_fallbacks')
-            self.sparse_info[fused.object_id] = result.reason
-            fused.stage_reason = STAGE_REASONS.index('sparse stage failed')
-            if fused.object_id not in self.estimates or self.estimates[fused.object_id].stage != 'fused':
-                self.estimates[fused.object_id] = fused
-            elif self.estimates[fused.object_id].stage == 'fused':
-                self.estimates[fused.object_id].stage_reason = fused.stage_reason
+    def _on_stage(self, outcome: StageOutcome) -> None:
+        """After each stage of an object: count, remember its words for /diagnostics, publish the map."""
+        if outcome.stage == 'fused':
+            self.count('meshes_placed')
+        else:
+            self.count(f'{outcome.stage}_runs')
+            self.stage_info[outcome.stage][outcome.object_id] = f'{outcome.reason.text}: {outcome.detail}'
+        if outcome.published:
             self._publish()
-            return None
-        mesh = self.prior.mesh(result.code, resolution=int(self.params['mesh_resolution']))
-        if mesh is None or len(mesh.faces) == 0:
-            self.report_error(f'object {fused.object_id}', 'refined code decodes to no surface; fused result kept',
-                              counter='warnings')
-            return None
-        mesh_world = mesh.copy()
-        mesh_world.apply_transform(result.T_world_object)
-        estimate = ObjectEstimate(fused.object_id, fused.class_name, fused.category, result.code,
-                                  result.T_world_object, result.scale, world_box(mesh, result.T_world_object, result.yaw),
-                                  fused.num_views, 'sparse', mesh_world,
-                                  dict(fused.timings, sparse_s=time.perf_counter() - t0),
-                                  STAGE_REASONS.index('in progress' if self.dense_on else 'dense stage disabled'))
-        e0, e1 = result.initial_energies.get('total', np.nan), result.energies.get('total', np.nan)
-        self.sparse_info[fused.object_id] = (f'{result.views} views, {result.iterations} it, E {e0:.3f}->{e1:.3f}, '
-                                             f'{result.seconds:.2f}s')
-        self.estimates[fused.object_id] = estimate
-        self._publish()
-        return estimate, result.landmarks, result.alternatives
-
-    def _dense(self, sparse: ObjectEstimate, box, num_views: int, landmarks: np.ndarray | None,
-               alternatives: list[tuple[np.ndarray, np.ndarray, str]] = ()) -> None:
-        """Dense stage after a successful sparse stage: publishes the dense estimate, or keeps the sparse one
-        (with the reason) when the dense result is not better or the stage cannot run. landmarks: the sparse
-        stage's visual-hull landmarks of the object (None: those of the whole map near the box); alternatives:
-        the sparse stage's other end states, further starts (`dense_starts`)."""
-        oid = sparse.object_id
-        with self.cond:
-            views = self.dense_store.views_of(oid, int(self.params['fill_views']))
-            slam = self.slam_points
-            self.dense_views_used[oid] = num_views
-            floor = support.scene_floor(self.tracks, slam)
-        t0 = time.perf_counter()
-        if landmarks is not None:
-            slam, box = landmarks, None     # already the object's: no box selection
-        result, _ = refine_dense_starts(self.prior, sparse.code, sparse.T_world_object, views, slam, box,
-                                        self.dense_config(),
-                                        should_stop=lambda: self.stopping,   # shutdown does not wait for a dense stage
-                                        floor_height=floor, height_range=support.class_height_range(sparse.class_name),
-                                        alternatives=alternatives, max_starts=int(self.params['dense_starts']))
-        self.count('dense_runs')
-        self.dense_info[oid] = (f'{result.views} views, {result.iterations} it, {result.seconds:.2f}s '
-                                f'({result.seconds_per_iteration:.2f}s/it): {result.reason}')
-        mesh = None
-        if result.improved:
-            mesh = self.prior.mesh(result.code, resolution=int(self.params['mesh_resolution']))
-        if mesh is None or len(mesh.faces) == 0:
-            if result.improved:
-                self.report_error(f'object {oid}', 'dense code decodes to no surface; sparse result kept',
-                                  counter='warnings')
-            reason = ('dense stage failed' if 'no usable views' in result.reason or 'non-finite' in result.reason
-                      or 'no surface' in result.reason else 'dense not better than sparse')
-            self.count('dense_kept_sparse')
-            if self.estimates.get(oid) is sparse:
-                sparse.stage_reason = STAGE_REASONS.index(reason)
-                sparse.timings['dense_s'] = time.perf_counter() - t0
-                self._publish()
-            return
-        mesh_world = mesh.copy()
-        mesh_world.apply_transform(result.T_world_object)
-        reason = 'dense time limit' if 'time limit' in result.reason else 'all stages done'
-        estimate = ObjectEstimate(oid, sparse.class_name, sparse.category, result.code, result.T_world_object,
-                                  result.scale, world_box(mesh, result.T_world_object, result.yaw), sparse.num_views,
-                                  'dense', mesh_world, dict(sparse.timings, dense_s=time.perf_counter() - t0),
-                                  STAGE_REASONS.index(reason))
-        self.estimates[oid] = estimate
-        self._publish()
 
     # ------------------------------------------------------------ outputs
     def _mesh_marker(self, est: ObjectEstimate, stamp_ns: int, frame: str, rgba) -> Marker:
@@ -691,13 +482,11 @@ class OptimNode(FrodoNode):
                       'resumed_unrefined': len(self.resumed),
                       'sparse_objects': sum(e.stage == 'sparse' for e in self.estimates.values()),
                       'dense_objects': sum(e.stage == 'dense' for e in self.estimates.values()),
-                      'views_held': len(self.view_store), 'dense_views_held': len(self.dense_store)}
-            if self.sparse_info:
-                oid = max(self.sparse_info)
-                values['sparse_last'] = f'object {oid}: {self.sparse_info[oid]}'
-            if self.dense_info:
-                oid = max(self.dense_info)
-                values['dense_last'] = f'object {oid}: {self.dense_info[oid]}'
+                      'views_held': len(self.views.sparse), 'dense_views_held': len(self.views.dense)}
+            for stage, info in self.stage_info.items():
+                if info:
+                    oid = max(info)
+                    values[f'{stage}_last'] = f'object {oid}: {info[oid]}'
             return values
 
     def diagnostic_summary(self) -> tuple[int, str]:

@@ -47,6 +47,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from enum import Enum
 
 import numpy as np
 import torch
@@ -118,9 +119,20 @@ class View:
         return self.mask_uv.nbytes + self.dt.nbytes + (0 if self.other is None else self.other.nbytes) + 200
 
 
+class SparseStatus(Enum):
+    """How `refine` ended (a value for callers to act on; `SparseResult.reason` is the text for people)."""
+
+    OPTIMISED = 'optimised'              # a placement below the input's energy was found
+    INPUT_KEPT = 'input kept'            # ok, but nothing lower than the input placement was found
+    INVALID_INPUT = 'invalid input'      # non-finite code or box, or decoded points not finite
+    NO_VIEWS = 'no usable views'
+    NON_FINITE_ENERGY = 'non-finite energy'
+
+
 @dataclass
 class SparseResult:
-    """Outcome of `refine`. `ok` False: the initial estimate is returned unchanged and `reason` says why."""
+    """Outcome of `refine`. `ok` False: the initial estimate is returned unchanged; `status` says why (`reason`
+    in words)."""
 
     code: np.ndarray
     T_world_object: np.ndarray
@@ -129,6 +141,7 @@ class SparseResult:
     translation: np.ndarray
     ok: bool = True
     reason: str = ''
+    status: SparseStatus = SparseStatus.OPTIMISED
     energies: dict[str, float] = field(default_factory=dict)
     initial_energies: dict[str, float] = field(default_factory=dict)
     init_yaw: float = 0.0
@@ -329,25 +342,25 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
     code = np.asarray(code, dtype=np.float32)
     device = getattr(prior, 'device', 'cpu')
 
-    def fallback(reason: str, yaw: float = box_yaw, pts=None) -> SparseResult:
+    def fallback(status: SparseStatus, reason: str, yaw: float = box_yaw, pts=None) -> SparseResult:
         t, s = np.asarray(center, dtype=np.float64), 1.0
         if pts is not None and np.isfinite(pts).all() and np.isfinite(center).all() and np.isfinite(size).all():
             t, s = box_init(pts, center, size, yaw)
         return SparseResult(code, pose_matrix(yaw, t, s), float(s), float(yaw), np.asarray(t), ok=False,
-                            reason=reason, init_yaw=float(yaw), views=len(views), seconds=time.perf_counter() - start)
+                            reason=reason, status=status, init_yaw=float(yaw), views=len(views), seconds=time.perf_counter() - start)
 
     if not (np.isfinite(code).all() and np.isfinite(center).all() and np.isfinite(size).all()
             and np.isfinite(box_yaw) and np.all(size > 0)):
-        return fallback('non-finite code or box')
+        return fallback(SparseStatus.INVALID_INPUT, 'non-finite code or box')
     views = [v for v in views if v is not None and np.isfinite(v.K).all() and np.isfinite(v.T_world_camera).all()
              and len(v.mask_uv) > 0 and np.isfinite(v.mask_uv).all() and np.isfinite(v.dt).all()]
     views = select_views(views, cfg.max_views)
     with torch.no_grad():
         pts0 = prior.decode_points(code).float().cpu()[0]
     if not torch.isfinite(pts0).all():
-        return fallback('decoded points are not finite')
+        return fallback(SparseStatus.INVALID_INPUT, 'decoded points are not finite')
     if not views:
-        return fallback('no usable views', pts=pts0.numpy())
+        return fallback(SparseStatus.NO_VIEWS, 'no usable views', pts=pts0.numpy())
 
     gen = torch.Generator().manual_seed(int(cfg.seed))
     batch = _Batch(views, cfg.truncation_aware)
@@ -420,7 +433,7 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
                           torch.tensor(math.log(s)), slam_input if k < n_box else slam_common)
             scores.append(float(e) if torch.isfinite(e) else np.inf)
     if not np.isfinite(scores).any():
-        return fallback('energy is not finite for any yaw candidate', pts=pts0_np)
+        return fallback(SparseStatus.NON_FINITE_ENERGY, 'energy is not finite for any yaw candidate', pts=pts0_np)
     first_input = int(np.argmin(scores[:4]))
     input_energy = scores[first_input]
 
@@ -520,7 +533,7 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
         chosen = next((k for k, r in enumerate(runs) if r[0][0] is not None), 0)
     (best, initial_terms, done), start_candidate = runs[chosen]
     yaw0, source = start_candidate[0], start_candidate[3]
-    reason = ''
+    reason, status = '', SparseStatus.OPTIMISED
     if best is None:   # no finite state in any run: keep the input placement
         best = (input_energy, 0, z0, *candidates[first_input][:2], math.log(candidates[first_input][2]), {})
     best_e, best_it, zb, yb, tb, lsb, terms_b = best
@@ -532,11 +545,12 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
     if chosen == 0 and not best_e < input_energy:
         yb, tb, s = candidates[first_input][:3]
         zb, reason = z0, f'input placement kept (energy {input_energy:.4f}, nothing lower found)'
+        status = SparseStatus.INPUT_KEPT
     yb = float(math.atan2(math.sin(yb), math.cos(yb)))
     alternatives = [(state[2].cpu().numpy().astype(np.float32), pose_matrix(state[3], state[4], math.exp(state[5])),
                      candidate[3]) for k, ((state, _, _), candidate) in enumerate(runs) if k != chosen and state is not None]
     return SparseResult(zb.cpu().numpy().astype(np.float32), pose_matrix(yb, tb, s), float(s), yb, np.asarray(tb),
-                        reason=reason, energies=terms_b, initial_energies=initial_terms, init_yaw=yaw0,
+                        reason=reason, status=status, energies=terms_b, initial_energies=initial_terms, init_yaw=yaw0,
                         placement=source, input_energy=input_energy, iterations=done,
                         best_iteration=best_it, views=len(views), seconds=time.perf_counter() - start,
                         landmarks=np.asarray(common if chosen > 0 else box_set, np.float32) if cfg.landmark_filter else None,

@@ -2,23 +2,48 @@
 conversion to the per-object records of `objects.json` (CONTRACT.md "Files written by the command line")."""
 from __future__ import annotations
 
+from enum import IntEnum
+
 import numpy as np
 
 from frodo_common.categories import category_by_id
 
 OBJECT_STATES = '/frodo/object_states'
 STAGES = ('fused', 'sparse', 'dense')
-# Why an object is at its stage (objects.json `stage_reason`); the index travels in the table.
-STAGE_REASONS = (
-    'in progress',                     # a later stage is still to run for this object
-    'all stages done',                 # dense result accepted
-    'sparse stage disabled',
-    'sparse stage failed',             # no usable views, invalid input, ... (details on /diagnostics)
-    'dense stage disabled',
-    'dense not better than sparse',    # dense energy not lowered: rolled back to the sparse result
-    'dense stage failed',              # no usable views, no surface, non-finite input
-    'dense time limit',                # dense result accepted, stopped by dense_max_seconds
-)
+
+
+class StageReason(IntEnum):
+    """Why an object is at its stage (objects.json `stage_reason`, as its `text`); the value travels in the
+    /frodo/object_states table, so members are only ever appended."""
+
+    IN_PROGRESS = 0              # a later stage is still to run for this object
+    ALL_STAGES_DONE = 1          # dense result accepted
+    SPARSE_DISABLED = 2
+    SPARSE_FAILED = 3            # no usable views, invalid input, the refined code decodes to no surface
+    DENSE_DISABLED = 4
+    DENSE_NOT_BETTER = 5         # dense energy not lowered: rolled back to the sparse result
+    DENSE_FAILED = 6             # no usable views, no surface, non-finite input or energy
+    DENSE_TIME_LIMIT = 7         # dense result accepted, stopped by dense_max_seconds
+    DENSE_INTERRUPTED = 8        # the optimiser stopped (shutdown) during the dense stage; best state so far kept
+
+    @property
+    def text(self) -> str:
+        return _REASON_TEXT[self]
+
+    @classmethod
+    def from_text(cls, text: str | None) -> 'StageReason':
+        """The member whose `text` is `text` (IN_PROGRESS for an unknown or missing one)."""
+        return next((r for r in cls if r.text == text), cls.IN_PROGRESS)
+
+
+_REASON_TEXT = {
+    StageReason.IN_PROGRESS: 'in progress', StageReason.ALL_STAGES_DONE: 'all stages done',
+    StageReason.SPARSE_DISABLED: 'sparse stage disabled', StageReason.SPARSE_FAILED: 'sparse stage failed',
+    StageReason.DENSE_DISABLED: 'dense stage disabled', StageReason.DENSE_NOT_BETTER: 'dense not better than sparse',
+    StageReason.DENSE_FAILED: 'dense stage failed', StageReason.DENSE_TIME_LIMIT: 'dense time limit',
+    StageReason.DENSE_INTERRUPTED: 'dense interrupted',
+}
+STAGE_REASONS = tuple(r.text for r in StageReason)   # objects.json texts, by table value
 STATES_DTYPE = np.dtype([('object_id', '<i4'), ('category', '<u2'), ('stage', 'u1'), ('num_views', '<u4'),
                          ('scale', '<f8'), ('pose', '<f8', (16,)), ('box', '<f8', (7,)),
                          ('code', '<f4', (64,)), ('seconds', '<f4'), ('stage_reason', 'u1')])

@@ -14,7 +14,7 @@ def test_mesh_marker_is_built_once_per_estimate_and_restamped():
     try:
         node = OptimNode()
         try:
-            prior = node.prior
+            prior = node.reconstructor.prior
             code = prior.training_codes[2].numpy()
             mesh = prior.mesh(code, resolution=24)
             box = (np.array([1.0, 2.0, 0.4]), np.array([0.5, 0.5, 0.8]), 0.3)

@@ -1,0 +1,238 @@
+"""Per-object reconstruction, coarse to fine (paper Sec. 4.3), without ROS: the stage policy that the optimiser
+node schedules and the offline pipeline (`frodo reconstruct`) runs synchronously.
+
+For one object (its association box, fused code and stored views) `ObjectReconstructor.reconstruct` runs
+- fused: the mesh decoded from the fused code (cached while the code moves by less than
+  `code_change_tolerance`) placed by its box (`core.fused_estimate`);
+- sparse: yaw search + code/pose optimisation on silhouettes and landmarks (`sparse.refine`);
+- dense: code + 7-DoF pose on the SDF decoder (`dense.refine_dense_starts`), deferred while other objects wait
+  unless the object's views grew by `dense_rerun_growth` since its last dense run;
+and keeps the current estimate of every object. Each stage ends with a `StageOutcome` whose `reason` is a
+`StageReason` value (never text to parse); a stage that cannot improve keeps what was there, with its reason.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from frodo_common.categories import category_by_id
+from frodo_optim import support
+from frodo_optim.config import OptimConfig
+from frodo_optim.core import ObjectEstimate, fused_estimate, world_box
+from frodo_optim.dense import DenseResult, DenseStop, refine_dense_starts
+from frodo_optim.photometric import ViewBatch
+from frodo_optim.sparse import SparseResult, refine, select_views
+from frodo_optim.states import StageReason
+from frodo_optim.views import ViewMemory
+
+Box = tuple  # (centre (3,), size (3,), yaw): the association's upright box in the world
+
+
+@dataclass
+class ObjectInput:
+    """What the front end says of one object: its track box and fused code (Sec. 4.1-4.2)."""
+
+    object_id: int
+    class_name: str          # the track's class (used when `category` is no known COCO id)
+    category: int            # COCO id of the fused code's detections
+    box: Box
+    code: np.ndarray         # (C,) fused code
+    num_views: int           # detections the fused code came from
+
+
+@dataclass
+class Scene:
+    """What the stages need of the rest of the map: landmarks (N, 3) or None, and the other objects' tracks
+    {id: (class name, box)} (floor estimate, neighbour boxes for the landmark selection)."""
+
+    slam_points: np.ndarray | None = None
+    tracks: dict[int, tuple[str, Box]] = field(default_factory=dict)
+
+
+@dataclass
+class StageOutcome:
+    """How one stage of one object ended. estimate: the object's estimate after it (None: the object has none);
+    detail: the stage's own words (energies, iterations, times) for diagnostics."""
+
+    object_id: int
+    stage: str                       # 'fused' | 'sparse' | 'dense': the stage that ran
+    reason: StageReason
+    estimate: ObjectEstimate | None
+    detail: str = ''
+    seconds: float = 0.0
+    published: bool = True           # the estimate changed (a listener should publish the map)
+
+
+@dataclass
+class ObjectOutcome:
+    """Every stage that ran for one object in one `reconstruct` call; `error`: why it has no estimate at all."""
+
+    object_id: int
+    stages: list[StageOutcome] = field(default_factory=list)
+    dense_deferred: bool = False
+    error: str = ''
+
+    @property
+    def final(self) -> StageOutcome | None:
+        return self.stages[-1] if self.stages else None
+
+
+class ObjectReconstructor:
+    """The object map of the optimiser: `estimates` {id: ObjectEstimate}, refined object by object."""
+
+    def __init__(self, prior, config: OptimConfig | None = None):
+        self.prior = prior
+        self.config = config or OptimConfig()
+        self.estimates: dict[int, ObjectEstimate] = {}
+        self.mesh_cache: dict[int, tuple[np.ndarray, object]] = {}   # id -> (code, normalised mesh)
+        self.dense_views_used: dict[int, int] = {}                   # id -> num_views at its last dense run
+
+    def forget(self, object_id: int) -> bool:
+        """Drop an object (its track is gone); True when it had an estimate."""
+        self.mesh_cache.pop(object_id, None)
+        self.dense_views_used.pop(object_id, None)
+        return self.estimates.pop(object_id, None) is not None
+
+    def dense_due(self, object_id: int, num_views: int, others_waiting: bool) -> bool:
+        """Whether the dense stage runs now: always for an object never run densely or when nobody else waits,
+        otherwise only once its views grew by `dense_rerun_growth` (breadth over depth while a bag plays)."""
+        used = self.dense_views_used.get(object_id)
+        return (used is None or not others_waiting
+                or num_views >= self.config.dense_rerun_growth * used)
+
+    def reconstruct(self, obj: ObjectInput, views: ViewMemory, scene: Scene, *, others_waiting: bool = False,
+                    should_stop: Callable[[], bool] | None = None,
+                    on_stage: Callable[[StageOutcome], None] | None = None) -> ObjectOutcome:
+        """Fused, then sparse, then dense for one object; `on_stage` is called after each stage (the node
+        publishes the map there). A refined object keeps its last refinement until a new one replaces it."""
+        cfg = self.config
+        outcome = ObjectOutcome(obj.object_id)
+
+        def emit(stage: StageOutcome) -> None:
+            outcome.stages.append(stage)
+            if on_stage is not None:
+                on_stage(stage)
+
+        fused = self._fused(obj)
+        if fused is None:
+            outcome.error = 'decoded shape has no surface (code far from the prior?)'
+            return outcome
+        previous = self.estimates.get(obj.object_id)
+        replace_previous = previous is None or previous.stage == 'fused' or not cfg.sparse_enabled
+        if replace_previous:
+            self.estimates[obj.object_id] = fused
+        emit(StageOutcome(obj.object_id, 'fused', StageReason(fused.stage_reason), self.estimates[obj.object_id],
+                          seconds=fused.timings['fused_s'], published=replace_previous))
+        if not cfg.sparse_enabled:
+            return outcome
+        sparse_stage, result = self._sparse(obj, fused, views, scene)
+        emit(sparse_stage)
+        if result is None or not cfg.dense_on:
+            return outcome
+        if not self.dense_due(obj.object_id, obj.num_views, others_waiting):
+            outcome.dense_deferred = True
+            return outcome
+        emit(self._dense(obj, sparse_stage.estimate, result, views, scene, should_stop))
+        return outcome
+
+    # ------------------------------------------------------------ stages
+    def _fused(self, obj: ObjectInput) -> ObjectEstimate | None:
+        start = time.perf_counter()
+        cached = self.mesh_cache.get(obj.object_id)
+        tol = self.config.code_change_tolerance
+        if cached is None or np.linalg.norm(obj.code - cached[0]) > tol * max(np.linalg.norm(cached[0]), 1e-6):
+            mesh = self.prior.mesh(obj.code, resolution=self.config.mesh_resolution)
+            if mesh is None or len(mesh.faces) == 0:
+                return None
+            self.mesh_cache[obj.object_id] = (obj.code, mesh)
+        mesh = self.mesh_cache[obj.object_id][1]
+        known = category_by_id(obj.category)
+        estimate = fused_estimate(obj.object_id, known.name if known else obj.class_name, obj.category, obj.code,
+                                  obj.num_views, mesh, obj.box)
+        estimate.timings['fused_s'] = time.perf_counter() - start
+        estimate.stage_reason = StageReason.IN_PROGRESS if self.config.sparse_enabled else StageReason.SPARSE_DISABLED
+        return estimate
+
+    def _sparse(self, obj: ObjectInput, fused: ObjectEstimate, views: ViewMemory, scene: Scene
+                ) -> tuple[StageOutcome, SparseResult | None]:
+        """The sparse stage; on failure the fused result stays (replacing an older refinement), with the reason."""
+        cfg = self.config
+        oid = obj.object_id
+        colour = select_views(views.dense_views(oid), cfg.sparse.max_views)
+        photometric = ViewBatch(colour) if colour and cfg.sparse.w_photometric > 0 else None   # sparse runs on CPU
+        t0 = time.perf_counter()
+        result = refine(self.prior, obj.code, obj.box, views.sparse_views(oid), scene.slam_points, cfg.sparse,
+                        photometric=photometric, floor_height=support.scene_floor(scene.tracks, scene.slam_points),
+                        height_range=support.class_height_range(fused.class_name), code_class=fused.class_name,
+                        neighbour_boxes=[b for other, (_, b) in scene.tracks.items() if other != oid])
+        seconds = time.perf_counter() - t0
+        mesh = self.prior.mesh(result.code, resolution=cfg.mesh_resolution) if result.ok else None
+        if mesh is None or len(mesh.faces) == 0:
+            detail = result.reason if not result.ok else 'refined code decodes to no surface; fused result kept'
+            fused.stage_reason = StageReason.SPARSE_FAILED
+            current = self.estimates.get(oid)
+            if current is None or current.stage != 'fused':
+                self.estimates[oid] = fused
+            else:
+                current.stage_reason = StageReason.SPARSE_FAILED
+            return StageOutcome(oid, 'sparse', StageReason.SPARSE_FAILED, self.estimates[oid], detail, seconds), None
+        mesh_world = mesh.copy()
+        mesh_world.apply_transform(result.T_world_object)
+        reason = StageReason.IN_PROGRESS if cfg.dense_on else StageReason.DENSE_DISABLED
+        estimate = ObjectEstimate(oid, fused.class_name, fused.category, result.code, result.T_world_object,
+                                  result.scale, world_box(mesh, result.T_world_object, result.yaw), fused.num_views,
+                                  'sparse', mesh_world, dict(fused.timings, sparse_s=seconds), reason)
+        self.estimates[oid] = estimate
+        e0, e1 = result.initial_energies.get('total', np.nan), result.energies.get('total', np.nan)
+        detail = f'{result.views} views, {result.iterations} it, E {e0:.3f}->{e1:.3f}, {result.seconds:.2f}s'
+        return StageOutcome(oid, 'sparse', reason, estimate, detail, seconds), result
+
+    def _dense(self, obj: ObjectInput, sparse: ObjectEstimate, sparse_result: SparseResult, views: ViewMemory,
+               scene: Scene, should_stop: Callable[[], bool] | None) -> StageOutcome:
+        """The dense stage after a successful sparse stage: the dense estimate, or the sparse one with the reason."""
+        oid = obj.object_id
+        self.dense_views_used[oid] = obj.num_views
+        slam, box = scene.slam_points, obj.box
+        if sparse_result.landmarks is not None:
+            slam, box = sparse_result.landmarks, None     # already the object's: no box selection
+        t0 = time.perf_counter()
+        result, _ = refine_dense_starts(self.prior, sparse.code, sparse.T_world_object, views.dense_views(oid), slam,
+                                        box, self.config.dense, should_stop=should_stop,
+                                        floor_height=support.scene_floor(scene.tracks, scene.slam_points),
+                                        height_range=support.class_height_range(sparse.class_name),
+                                        alternatives=sparse_result.alternatives, max_starts=self.config.dense_starts)
+        seconds = time.perf_counter() - t0
+        detail = (f'{result.views} views, {result.iterations} it, {result.seconds:.2f}s '
+                  f'({result.seconds_per_iteration:.2f}s/it): {result.reason}')
+        mesh = self.prior.mesh(result.code, resolution=self.config.mesh_resolution) if result.improved else None
+        reason = dense_reason(result, has_surface=mesh is not None and len(mesh.faces) > 0)
+        if mesh is None or len(mesh.faces) == 0:
+            if result.improved:
+                detail += '; dense code decodes to no surface, sparse result kept'
+            if self.estimates.get(oid) is sparse:
+                sparse.stage_reason = reason
+                sparse.timings['dense_s'] = seconds
+            return StageOutcome(oid, 'dense', reason, self.estimates.get(oid), detail, seconds)
+        mesh_world = mesh.copy()
+        mesh_world.apply_transform(result.T_world_object)
+        estimate = ObjectEstimate(oid, sparse.class_name, sparse.category, result.code, result.T_world_object,
+                                  result.scale, world_box(mesh, result.T_world_object, result.yaw), sparse.num_views,
+                                  'dense', mesh_world, dict(sparse.timings, dense_s=seconds), reason)
+        self.estimates[oid] = estimate
+        return StageOutcome(oid, 'dense', reason, estimate, detail, seconds)
+
+
+def dense_reason(result: DenseResult, has_surface: bool) -> StageReason:
+    """The stage reason of a dense run: accepted (improved, with a surface) or why the sparse result stays."""
+    if result.improved and has_surface:
+        return {DenseStop.TIME_LIMIT: StageReason.DENSE_TIME_LIMIT,
+                DenseStop.INTERRUPTED: StageReason.DENSE_INTERRUPTED}.get(result.stop, StageReason.ALL_STAGES_DONE)
+    if result.improved or result.stop in (DenseStop.NO_VIEWS, DenseStop.INVALID_INPUT, DenseStop.NO_SURFACE,
+                                          DenseStop.NON_FINITE_ENERGY):
+        return StageReason.DENSE_FAILED
+    if result.stop is DenseStop.INTERRUPTED:
+        return StageReason.DENSE_INTERRUPTED
+    return StageReason.DENSE_NOT_BETTER
