@@ -12,7 +12,6 @@ Frames with missing or invalid camera info / pose / detections are counted, repo
 """
 from __future__ import annotations
 
-import time
 from collections import OrderedDict, deque
 from dataclasses import fields
 from typing import Any
@@ -22,21 +21,19 @@ from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from visualization_msgs.msg import MarkerArray
 
-from frodo_association.config import CONFIG_DOC, AssociationConfig
-from frodo_association.evidence import contact_edges, surface_depths
+from frodo_association.config import CONFIG_DOC, EVIDENCE_DOC, AssociationConfig, EvidenceConfig
+from frodo_association.frames import FrameAssociator, config_from_values
 from frodo_common.frames import depth_to_metres
-from frodo_association.tracker import Associator, detections_from_instances
 from frodo_common import conversions as conv
 from frodo_common import topics
 from frodo_common.categories import category_by_id
 from frodo_common.frame_cache import FrameCache
-from frodo_common.geometry import invert_transform
 from frodo_common.node import FrodoNode, run_node
 from frodo_common.params import ParamSpec
 
-_DEFAULTS = AssociationConfig()
 PARAMS: tuple[ParamSpec, ...] = tuple(
-    ParamSpec(f.name, getattr(_DEFAULTS, f.name), CONFIG_DOC[f.name]) for f in fields(AssociationConfig)) + (
+    ParamSpec(f.name, getattr(AssociationConfig(), f.name), CONFIG_DOC[f.name]) for f in fields(AssociationConfig)) + tuple(
+    ParamSpec(f.name, getattr(EvidenceConfig(), f.name), EVIDENCE_DOC[f.name]) for f in fields(EvidenceConfig)) + (
     ParamSpec('match_timeout', 2.0, 'Seconds (of stamp time) a frame waits for its missing part (detections or '
               'pose) once a newer frame is complete; then it is dropped and reported.'),
     ParamSpec('camera_info_topic', topics.CAMERA_INFO, 'Camera intrinsics topic.'),
@@ -45,13 +42,6 @@ PARAMS: tuple[ParamSpec, ...] = tuple(
               "detections a visible-surface depth; '' disables."),
     ParamSpec('slam_points_topic', topics.SLAM_POINTS, "Optional SLAM landmarks (whole map per message) giving "
               "detections without depth a visible-surface depth; '' disables."),
-    ParamSpec('evidence_erode_px', 3, 'Masks are eroded by this many pixels before depth pixels or landmarks inside '
-              'them are used (boundary errors, bleeding).'),
-    ParamSpec('evidence_min_pixels', 20, 'Depth measurements inside the eroded mask needed for a surface depth '
-              '(their median).'),
-    ParamSpec('evidence_min_landmarks', 3, 'Landmarks projecting inside the eroded mask needed for a surface depth.'),
-    ParamSpec('landmark_quantile', 0.25, 'Surface depth from landmarks: this quantile of their depths (the map also '
-              'holds points on the far side and behind the object).'),
 )
 
 
@@ -61,9 +51,8 @@ class AssociationNode(FrodoNode):
     def __init__(self, **kwargs):
         super().__init__('association_node', PARAMS, **kwargs)
         p = self.params
-        self.cfg = AssociationConfig(**{f.name: type(getattr(_DEFAULTS, f.name))(p[f.name])
-                                        for f in fields(AssociationConfig)})
-        self.associator = Associator(self.cfg)
+        self.frame_associator = FrameAssociator(*config_from_values(p))
+        self.associator = self.frame_associator.associator
         self.cache = FrameCache(('detections', 'pose'), int(p['frame_cache_size']))
         self.waiting: list[int] = []            # complete frames waiting for the first camera info
         self.latency_ms: deque[float] = deque(maxlen=200)   # recent add_frame times
@@ -107,27 +96,6 @@ class AssociationNode(FrodoNode):
         points = conv.cloud_to_xyz(msg)
         self.slam_points = points[np.isfinite(points).all(1)] if len(points) else points
         self.count('slam_maps_received')
-
-    def _surface_depths(self, stamp: int, instances: np.ndarray, labels: np.ndarray, K: np.ndarray,
-                        T_world_camera: np.ndarray) -> np.ndarray | None:
-        """Visible-surface depth per detection from this frame's depth image and the latest landmarks, or None
-        when neither is there. A depth image of the wrong size is reported and not used."""
-        depth = self.depth_cache.pop(stamp, None)
-        if depth is not None and depth.shape != instances.shape:
-            self.report_error(f'frame {stamp}', f'depth {depth.shape[1]}x{depth.shape[0]} is not registered to the '
-                              f'detections {instances.shape[1]}x{instances.shape[0]}; not used', counter='warnings')
-            depth = None
-        points = self.slam_points if self.slam_points is not None and len(self.slam_points) else None
-        if (depth is None and points is None) or len(labels) == 0:
-            return None
-        p = self.params
-        t0 = time.perf_counter()
-        surface = surface_depths(instances, labels, K, invert_transform(T_world_camera), depth, points,
-                                 int(p['evidence_erode_px']), int(p['evidence_min_pixels']),
-                                 int(p['evidence_min_landmarks']), float(p['landmark_quantile']))
-        self.evidence_ms.append(1e3 * (time.perf_counter() - t0))
-        self.count('frames_with_depth' if depth is not None else 'frames_with_landmarks')
-        return surface
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         K = conv.camera_info_to_K(msg)           # raises on invalid intrinsics: reported, the old info stays
@@ -181,22 +149,25 @@ class AssociationNode(FrodoNode):
             self.report_error(f'frame {stamp}', err)
             self.cache.frames.pop(stamp, None)
             return
-        labels, boxes = detections_from_instances(instances)
-        surface = self._surface_depths(stamp, instances, labels, K, T_world_camera)
-        contact = contact_edges(instances, labels, boxes, surface) if self.associator.cfg.box_contact_edges else None
-        t0 = time.perf_counter()
-        update = self.associator.add_frame(stamp, K, T_world_camera, size, labels, boxes, surface, contact)
-        self.latency_ms.append(1e3 * (time.perf_counter() - t0))
+        depth = self.depth_cache.pop(stamp, None)
+        if depth is not None and depth.shape != instances.shape:
+            self.report_error(f'frame {stamp}', f'depth {depth.shape[1]}x{depth.shape[0]} is not registered to the '
+                              f'detections {instances.shape[1]}x{instances.shape[0]}; not used', counter='warnings')
+            depth = None
+        result = self.frame_associator.add(stamp, K, T_world_camera, size, instances, depth, self.slam_points)
+        if result.evidence_ms is not None:
+            self.evidence_ms.append(result.evidence_ms)
+            self.count('frames_with_depth' if depth is not None else 'frames_with_landmarks')
+        self.latency_ms.append(result.association_ms)
+        self.refine_ms.append(result.refine_ms)
         self.cache.frames.pop(stamp, None)       # processed: free the images (the stamp stays marked complete)
         frame_id = self.params['world_frame']
-        self.assoc_pub.publish(self._table_msg(update.table, stamp, frame_id))
+        self.assoc_pub.publish(self._table_msg(result.update.table, stamp, frame_id))
         self.count('frames_published')
-        t0 = time.perf_counter()
-        refined = self.associator.refine_boxes()
-        self.refine_ms.append(1e3 * (time.perf_counter() - t0))
-        self._republish(update.republish + [s for s in refined.republish if s not in update.republish], frame_id)
+        self._republish(result.republish, frame_id)
+        update = result.update
         self.count('merges', sum(1 for v in update.removed.values() if v >= 0))
-        if update.tracks_changed or refined.tracks_changed:
+        if result.tracks_changed:
             self._publish_tracks(stamp, frame_id)
 
     def _table_msg(self, table: np.ndarray, stamp: int, frame_id: str) -> PointCloud2:

@@ -1,15 +1,11 @@
 """Association parameters (`AssociationConfig`, documented by `CONFIG_DOC`; the node's ROS parameters are
-generated from both) and the row type of /frodo/associations (`ASSOCIATION_DTYPE`)."""
+generated from both), `EvidenceConfig` and the row type of /frodo/associations (`ASSOCIATION_DTYPE`, defined in
+frodo_common.schemas)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
-import numpy as np
-
-ASSOCIATION_DTYPE = np.dtype([('x', '<f4'), ('y', '<f4'), ('z', '<f4'), ('label', '<u2'), ('object_id', '<i4'),
-                              ('kept', 'u1'), ('bbox', '<f4', (4,))])
-"""Row of /frodo/associations (docs/ARCHITECTURE.md): object centre (world; NaN when not associated), the
-detection's instance label, object id (-1: not associated), kept (passed pruning), box (x0, y0, x1, y1)."""
+from frodo_common.schemas import ASSOCIATION_DTYPE  # noqa: F401 - the row type, re-exported
 
 
 @dataclass(frozen=True)
@@ -170,3 +166,24 @@ keyframes are published once they leave the view, and full passes come every 1.5
 span a whole sequence). Off by default: on the video-rate box-world walks (held-out seeds 100-119) the confirmation
 rule published one spurious cluster that left the view after 3 viewpoints, and on the dense layout the extra full
 passes added a duplicate and a false track."""
+
+
+@dataclass(frozen=True)
+class EvidenceConfig:
+    """How a detection's visible-surface depth is taken from registered depth or SLAM landmarks
+    (`evidence.surface_depths`); `EVIDENCE_DOC` describes each field (node parameters of the same names)."""
+
+    evidence_erode_px: int = 3
+    evidence_min_pixels: int = 20
+    evidence_min_landmarks: int = 3
+    landmark_quantile: float = 0.25
+
+
+EVIDENCE_DOC: dict[str, str] = {
+    'evidence_erode_px': 'Masks are eroded by this many pixels before depth pixels or landmarks inside them are used '
+                         '(boundary errors, bleeding).',
+    'evidence_min_pixels': 'Depth measurements inside the eroded mask needed for a surface depth (their median).',
+    'evidence_min_landmarks': 'Landmarks projecting inside the eroded mask needed for a surface depth.',
+    'landmark_quantile': 'Surface depth from landmarks: this quantile of their depths (the map also holds points on '
+                         'the far side and behind the object).',
+}

@@ -1,7 +1,8 @@
-"""Default topic names (CONTRACT.md and docs/ARCHITECTURE.md) and the QoS profiles they use."""
-from __future__ import annotations
+"""Default topic names (CONTRACT.md and docs/ARCHITECTURE.md) and the QoS profiles they use.
 
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+The names import without ROS (the offline pipeline and the configs use them); the QoS profiles `FRAME_QOS` and
+`LATCHED_QOS` are built from rclpy on first use."""
+from __future__ import annotations
 
 # Contract inputs.
 IMAGE = '/camera/color/image_raw'
@@ -24,13 +25,20 @@ OBJECT_CODES = '/frodo/object_codes'
 # merges the shares into the complete map of the contract topics (frodo_optim.merge; see object_share_topic).
 OBJECT_SHARES = '/frodo/internal/object_shares'
 
-# Per-frame sensor streams: reliable so a bag played fast loses nothing; deep queue for bursts.
-FRAME_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
-                       history=HistoryPolicy.KEEP_LAST)
-# Latched state (object map, boxes, tracks, fused codes): late joiners get the latest complete message.
-LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
-
+def __getattr__(name: str):
+    """FRAME_QOS: per-frame sensor streams, reliable so a bag played fast loses nothing, deep queue for bursts.
+    LATCHED_QOS: latched state (object map, boxes, tracks, fused codes), late joiners get the latest message."""
+    if name not in ('FRAME_QOS', 'LATCHED_QOS'):
+        raise AttributeError(f'module {__name__!r} has no attribute {name!r}')
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    profiles = {
+        'FRAME_QOS': QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                                durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST),
+        'LATCHED_QOS': QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                                  durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST),
+    }
+    globals().update(profiles)    # built once
+    return profiles[name]
 
 def object_share_topic(kind: str, worker: int) -> str:
     """Internal topic of optimiser worker `worker`'s share of `kind` ('objects', 'boxes' or 'object_states'),

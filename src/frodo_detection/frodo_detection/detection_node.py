@@ -17,40 +17,11 @@ from sensor_msgs.msg import Image
 
 from frodo_common import conversions as conv
 from frodo_common import topics
-from frodo_common.categories import CATEGORIES, DEFAULT_CLASSES, category_by_id
+from frodo_common.categories import category_by_id
 from frodo_common.frame_cache import FrameCache
 from frodo_common.node import FrodoNode, run_node
-from frodo_common.params import ParamSpec
-from frodo_detection.core import FRAGMENT_POLICIES, FilterConfig, MaskRCNNDetector, filter_instances
-
-BACKENDS = ('external', 'maskrcnn')
-_DEFAULT_CLASS_IDS = [c.coco_id for c in CATEGORIES if c.name in DEFAULT_CLASSES]
-
-PARAMS: tuple[ParamSpec, ...] = (
-    ParamSpec('backend', 'external', "Where masks come from: 'external' (/camera/instances) or 'maskrcnn' "
-              '(torchvision Mask R-CNN on each image).'),
-    ParamSpec('classes', _DEFAULT_CLASS_IDS, 'COCO category ids kept (62 chair, 63 couch, 65 bed, 67 dining table).'),
-    ParamSpec('min_area', 400, 'Instances with fewer mask pixels are dropped (pixels at 640x480; scaled by '
-              'W*H/(640*480) at other resolutions).'),
-    ParamSpec('min_box_side', 16, 'Instances whose box is narrower or lower than this are dropped (pixels at '
-              '640x480; scaled by sqrt(W*H/(640*480)) at other resolutions).'),
-    ParamSpec('drop_truncated', False, 'Drop instances touching the image border (truncated objects).'),
-    ParamSpec('border_margin', 2, 'Distance to the border (pixels) below which an instance counts as truncated.'),
-    ParamSpec('min_fragment_fraction', 0.05, 'Mask components smaller than this fraction of the instance area '
-              'are removed as specks (0 keeps all).'),
-    ParamSpec('fragment_policy', 'keep', "Instances still in several pieces: 'keep', 'largest' (keep the largest "
-              "piece) or 'drop'."),
-    ParamSpec('weights_path', '', 'Mask R-CNN v2 COCO checkpoint (maskrcnn_resnet50_fpn_v2_coco-73cbd019.pth); '
-              "'' = $TORCH_HOME/hub/checkpoints/."),
-    ParamSpec('device', 'cpu', "Torch device for Mask R-CNN: 'cpu' or 'cuda'."),
-    ParamSpec('score_threshold', 0.7, 'Mask R-CNN detections with a lower score are dropped.'),
-    ParamSpec('mask_threshold', 0.5, 'Mask R-CNN soft-mask probability threshold.'),
-    ParamSpec('input_min_size', 800, 'Mask R-CNN input resize (shorter side, pixels); smaller is faster.'),
-    ParamSpec('match_window', 60, "Frames held while waiting for the image's instance image (backend 'external')."),
-    ParamSpec('image_topic', topics.IMAGE, 'Colour image topic.'),
-    ParamSpec('instances_topic', topics.INSTANCES, "Instance image topic (backend 'external')."),
-)
-
+from frodo_detection.config import PARAMS, filter_config, make_detector
+from frodo_detection.core import MaskRCNNDetector, filter_instances
 
 class DetectionNode(FrodoNode):
     """Publishes the filtered instance image of every image frame on /frodo/detections."""
@@ -58,19 +29,8 @@ class DetectionNode(FrodoNode):
     def __init__(self, detector: MaskRCNNDetector | None = None, **kwargs):
         super().__init__('detection_node', PARAMS, **kwargs)
         p = self.params
-        if p['backend'] not in BACKENDS:
-            raise ValueError(f"backend must be one of {BACKENDS}, got {p['backend']!r}")
-        if p['fragment_policy'] not in FRAGMENT_POLICIES:
-            raise ValueError(f"fragment_policy must be one of {FRAGMENT_POLICIES}, got {p['fragment_policy']!r}")
-        self.filter_cfg = FilterConfig(
-            classes=tuple(int(c) for c in p['classes']), min_area=int(p['min_area']),
-            min_box_side=int(p['min_box_side']), drop_truncated=bool(p['drop_truncated']),
-            border_margin=int(p['border_margin']), min_fragment_fraction=float(p['min_fragment_fraction']),
-            fragment_policy=p['fragment_policy'])
-        self.detector = detector
-        if p['backend'] == 'maskrcnn' and detector is None:
-            self.detector = MaskRCNNDetector(p['weights_path'] or None, p['device'], p['score_threshold'],
-                                             p['mask_threshold'], self.filter_cfg.classes, int(p['input_min_size']))
+        self.filter_cfg = filter_config(p)
+        self.detector = detector if detector is not None else make_detector(p)
         self.cache = FrameCache(('image', 'instances'), int(p['match_window']))
         self._warned_encodings: set[str] = set()
         self._warned_categories: set[int] = set()

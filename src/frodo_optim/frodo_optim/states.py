@@ -7,6 +7,7 @@ from enum import IntEnum
 import numpy as np
 
 from frodo_common.categories import category_by_id
+from frodo_common.schemas import STATES_DTYPE  # noqa: F401 - the table's row type, re-exported
 
 OBJECT_STATES = '/frodo/object_states'
 STAGES = ('fused', 'sparse', 'dense')
@@ -44,9 +45,7 @@ _REASON_TEXT = {
     StageReason.DENSE_INTERRUPTED: 'dense interrupted',
 }
 STAGE_REASONS = tuple(r.text for r in StageReason)   # objects.json texts, by table value
-STATES_DTYPE = np.dtype([('object_id', '<i4'), ('category', '<u2'), ('stage', 'u1'), ('num_views', '<u4'),
-                         ('scale', '<f8'), ('pose', '<f8', (16,)), ('box', '<f8', (7,)),
-                         ('code', '<f4', (64,)), ('seconds', '<f4'), ('stage_reason', 'u1')])
+
 
 
 def states_to_records(table: np.ndarray) -> dict[int, dict]:

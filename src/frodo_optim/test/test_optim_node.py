@@ -17,7 +17,7 @@ from frodo_common import topics
 from frodo_common.testing import latest_status, spin_until
 from frodo_optim.optim_node import OptimNode
 from frodo_optim.states import OBJECT_STATES, STAGE_REASONS, STAGES, states_to_records
-from frodo_shape.shape_node import OBJECT_CODES_DTYPE
+from frodo_common.schemas import OBJECT_CODES_DTYPE
 
 CHAIR = 62
 

@@ -25,7 +25,7 @@ from frodo_optim.object_map import MAP_FILE
 from frodo_optim.optim_node import OptimNode
 from frodo_optim.states import OBJECT_STATES, STAGES
 from frodo_shape.prior import ShapePrior
-from frodo_shape.shape_node import OBJECT_CODES_DTYPE
+from frodo_common.schemas import OBJECT_CODES_DTYPE
 
 CHAIR = 62
 STAMP = 1_000_000_000
