@@ -15,6 +15,7 @@ from typing import Sequence
 # name: (module, one-line summary), in the order `frodo --help` lists them.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     'run': ('frodo_bringup.cli_run', 'Reconstruct a bag: launch the graph, play, wait until done, write outputs.'),
+    'reconstruct': ('frodo_bringup.cli_reconstruct', 'Reconstruct a bag offline, deterministic, without ROS processes.'),
     'launch': ('frodo_bringup.cli_launch', 'Start the node graph (one process per node) until Ctrl-C.'),
     'play': ('frodo_bringup.cli_play', 'Publish a contract bag (ROS 2 MCAP) on the live graph.'),
     'record': ('frodo_bringup.cli_record', 'Record live topics into a rosbag2-compatible MCAP file.'),

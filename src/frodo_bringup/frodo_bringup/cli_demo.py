@@ -74,23 +74,31 @@ def run(args: argparse.Namespace) -> int:
         except (PlayerError, GraphError) as err:
             print(f'frodo demo: error: {err}', file=sys.stderr)
             return 2
-    try:
-        pred, gt = load_predictions(args.out), load_ground_truth(bag)
-    except EvaluationError as err:
-        print(f'frodo demo: evaluation failed: {err}', file=sys.stderr)
+    if not score_outputs(args.out, bag, 'frodo demo'):
         return result.exit_code or 1
-    report = evaluate(pred, gt)
-    print(f'\nevaluation against the ground truth of {bag} (CONTRACT.md protocol):')
-    print(report.table())
-    print('\n' + stage_table(args.out, report))
-    payload = report.to_dict()
-    payload['inputs'] = {'pred': str(args.out), 'gt': str(bag)}
-    (args.out / EVAL_FILE).write_text(json.dumps(payload, indent=2) + '\n')
-    figure = draw_result(pred, gt, report, args.out / FIGURE_FILE, title=bag.name)
-    print(f'report: {args.out / EVAL_FILE}, picture: {figure}')
     if not args.no_viewer and result.exit_code == EXIT_OK:
         print(f'view it: rerun {args.out / RECORDING_FILE}')
     return result.exit_code
+
+
+def score_outputs(out: Path, bag: Path, command: str) -> bool:
+    """Score out/objects.json against the bag's ground truth: print the tables, write eval.json and result.png.
+    False (with the reason printed) when there is nothing to score."""
+    try:
+        pred, gt = load_predictions(out), load_ground_truth(bag)
+    except EvaluationError as err:
+        print(f'{command}: evaluation failed: {err}', file=sys.stderr)
+        return False
+    report = evaluate(pred, gt)
+    print(f'\nevaluation against the ground truth of {bag} (CONTRACT.md protocol):')
+    print(report.table())
+    print('\n' + stage_table(out, report))
+    payload = report.to_dict()
+    payload['inputs'] = {'pred': str(out), 'gt': str(bag)}
+    (out / EVAL_FILE).write_text(json.dumps(payload, indent=2) + '\n')
+    figure = draw_result(pred, gt, report, out / FIGURE_FILE, title=Path(bag).name)
+    print(f'report: {out / EVAL_FILE}, picture: {figure}')
+    return True
 
 
 def stage_table(out: Path, report) -> str:

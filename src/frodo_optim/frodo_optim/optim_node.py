@@ -44,7 +44,7 @@ from frodo_optim.core import ObjectEstimate
 from frodo_optim.merge import TABLE_KIND, MapMerger, Retractions
 from frodo_optim.object_map import MapObject, MapWriter, load_maps, map_dirs, worker_map_dir
 from frodo_optim.reconstructor import ObjectInput, ObjectReconstructor, Scene, StageOutcome
-from frodo_optim.states import OBJECT_STATES, STAGES, STATES_DTYPE
+from frodo_optim.states import OBJECT_STATES, estimates_table
 from frodo_optim.views import ViewMemory
 from frodo_shape.prior import ShapePrior
 
@@ -371,16 +371,13 @@ class OptimNode(FrodoNode):
         for ns, oid in self.retractions.update(current):
             objects.markers.append(conv.delete_marker(ns, oid, now, frame))
             boxes.markers.append(conv.delete_marker(ns, oid, now, frame))
-        states = np.zeros(len(estimates), dtype=STATES_DTYPE)
-        for i, est in enumerate(estimates):
+        for est in estimates:
             rgba = CLASS_COLOURS.get(est.class_name, (0.7, 0.7, 0.7, 1.0))
             objects.markers.append(self._mesh_marker(est, now, frame, rgba))
             center, size, yaw = est.box
             boxes.markers.append(conv.box_to_marker(center, size, yaw, est.class_name, est.object_id, now, frame,
                                                     rgba[:3] + (0.35,)))
-            states[i] = (est.object_id, est.category, STAGES.index(est.stage), est.num_views, est.scale,
-                         est.T_world_object.ravel(), np.r_[center, size, yaw], est.code,
-                         sum(est.timings.values()), est.stage_reason)
+        states = estimates_table(estimates)
         self.mesh_markers = {oid: entry for oid, entry in self.mesh_markers.items() if oid in self.estimates}
         if self.merger is None:       # alone: the map; worker k >= 1: its share
             self.objects_pub.publish(objects)

@@ -68,3 +68,14 @@ def states_to_records(table: np.ndarray) -> dict[int, dict]:
             'timings': {'optimiser_s': float(row['seconds'])},
         }
     return out
+
+
+def estimates_table(estimates) -> np.ndarray:
+    """Table of STATES_DTYPE of `core.ObjectEstimate`s (in the order given): what /frodo/object_states carries."""
+    table = np.zeros(len(estimates), dtype=STATES_DTYPE)
+    for i, est in enumerate(estimates):
+        center, size, yaw = est.box
+        table[i] = (est.object_id, est.category, STAGES.index(est.stage), est.num_views, est.scale,
+                    est.T_world_object.ravel(), np.r_[center, size, yaw], est.code, sum(est.timings.values()),
+                    int(est.stage_reason))
+    return table
