@@ -84,9 +84,10 @@ class DetectionNode(FrodoNode):
         self._note_conversion(image.encoding)
         self._note_unknown_categories(raw)
         filtered, detections = filter_instances(raw, self.filter_cfg)
-        self.pub.publish(conv.numpy_to_image(filtered, '16UC1', stamp, image.header.frame_id))
+        # counted before publishing: a listener that has the frame finds it counted on /diagnostics
         self.count('frames_published')
         self.count('detections_published', len(detections))
+        self.pub.publish(conv.numpy_to_image(filtered, '16UC1', stamp, image.header.frame_id))
         if not detections:
             self.count('frames_without_detections')
         self.cache.frames.pop(stamp, None)  # processed: free the images (the stamp stays marked complete)
