@@ -33,12 +33,12 @@ def _params(tmp_path, **optimiser) -> str:
 
 
 def test_run_writes_objects_meshes_and_recording(tmp_path):
-    write_contract_bag(tmp_path / 'in.mcap', frames=10, period=0.05)
+    write_contract_bag(tmp_path / 'in.mcap', frames=10, period=0.05, instances=True)
     output = io.StringIO()
     result = run_bag(tmp_path / 'in.mcap', tmp_path / 'out', [_params(tmp_path)], timeout=15, rate=0,
                      viewer='rrd', nodes=STUB_GRAPH, startup_timeout=30, output=output, progress=False)
     assert result.exit_code == EXIT_OK, output.getvalue()
-    assert result.done and result.play.total == 31  # ground truth included for the viewer
+    assert result.done and result.play.total == 41  # 4 topics x 10 frames + ground truth for the viewer
     document = json.loads((tmp_path / 'out' / 'objects.json').read_text())
     (obj,) = document['objects']
     assert (obj['id'], obj['class'], obj['mesh']) == (7, 'chair', 'meshes/7_chair.ply')
@@ -47,11 +47,11 @@ def test_run_writes_objects_meshes_and_recording(tmp_path):
     assert len(mesh.faces) == len(TETRAHEDRON_FACES) and len(mesh.vertices) == 4
     assert (tmp_path / 'out' / 'logs' / 'optim_node.log').is_file()
     assert (tmp_path / 'out' / 'frodo.rrd').stat().st_size > 0
-    assert 'done: 31 messages played, 1 objects' in output.getvalue()
+    assert 'done: 41 messages played, 1 objects' in output.getvalue()
 
 
 def test_run_reports_a_crashed_node(tmp_path):
-    write_contract_bag(tmp_path / 'in.mcap', frames=200, period=0.05)  # 10 s of bag at rate 1
+    write_contract_bag(tmp_path / 'in.mcap', frames=200, period=0.05, instances=True)  # 10 s of bag at rate 1
     output = io.StringIO()
     result = run_bag(tmp_path / 'in.mcap', tmp_path / 'out', [_params(tmp_path, crash_after=1.0)], timeout=5,
                      nodes=STUB_GRAPH, startup_timeout=20, output=output, progress=False)
@@ -65,7 +65,7 @@ def test_run_ignores_and_names_another_graphs_diagnostics(tmp_path):
     """Reports of an optim_node this run did not start (another graph in the ROS domain: busy, no image taken)
     must neither pace playback nor hold off "done"; the run names it. Without the pid check this run never
     ends (timeout, exit 3)."""
-    write_contract_bag(tmp_path / 'in.mcap', frames=10, period=0.05)
+    write_contract_bag(tmp_path / 'in.mcap', frames=10, period=0.05, instances=True)
     busy = DiagnosticArray(status=[DiagnosticStatus(name='optim_node', values=[
         KeyValue(key=k, value=v) for k, v in {'pid': '999999', 'state': 'optimising', 'pending_objects': '3',
                                                'image_received': '0'}.items()])])
@@ -80,7 +80,7 @@ def test_run_ignores_and_names_another_graphs_diagnostics(tmp_path):
     text = output.getvalue()
     assert text.count('ignoring /diagnostics of a optim_node with pid 999999') == 1
     assert 'WARNING: another graph ran in this ROS domain (optim_node (pid 999999))' in text
-    assert 'done: 30 messages played, 1 objects' in text
+    assert 'done: 40 messages played, 1 objects'  # 4 topics x 10 frames in text
 
 
 def test_run_rejects_a_missing_bag_before_starting_nodes(tmp_path):
@@ -119,4 +119,13 @@ def test_run_rejects_bad_bags_at_once_with_exit_2(tmp_path, capsys):
     assert cli.main(['run', str(tmp_path / 'poses.mcap'), '--out', str(tmp_path / 'out')]) == 2
     err = capsys.readouterr().err
     assert f'no message on the required input(s) {topics.IMAGE}, {topics.CAMERA_INFO}' in err
+    assert not (tmp_path / 'out' / 'logs').exists()  # no node was started
+
+
+def test_run_refuses_a_bag_without_masks_under_the_external_backend(tmp_path, capsys):
+    from frodo_bringup import cli
+    write_contract_bag(tmp_path / 'no_masks.mcap', frames=3)
+    assert cli.main(['run', str(tmp_path / 'no_masks.mcap'), '--out', str(tmp_path / 'out')]) == 2
+    err = capsys.readouterr().err
+    assert 'no instance masks' in err and 'backend: maskrcnn' in err
     assert not (tmp_path / 'out' / 'logs').exists()  # no node was started

@@ -141,7 +141,7 @@ def test_the_run_collector_knows_which_nodes_are_behind():
 def test_done_waits_for_images_queued_behind_a_long_callback(tmp_path):
     """A node reports from a thread of its own, so one stuck in a long callback reports steady counters while
     images wait in its queue; "done" then also needs every image taken (or LOST_IMAGES_GRACE to pass)."""
-    write_contract_bag(tmp_path / 'in.mcap', frames=4, period=0.05)
+    write_contract_bag(tmp_path / 'in.mcap', frames=4, period=0.05, instances=True)
     params = tmp_path / 'params.yaml'
     params.write_text("'/**':\n  ros__parameters:\n    diagnostics_period: 0.2\n"
                       'shape_node:\n  ros__parameters:\n    seconds_per_image: 1.0\n'
@@ -155,7 +155,7 @@ def test_done_waits_for_images_queued_behind_a_long_callback(tmp_path):
 
 
 def test_frodo_run_with_two_workers_waits_for_both(tmp_path):
-    write_contract_bag(tmp_path / 'in.mcap', frames=10, period=0.05)
+    write_contract_bag(tmp_path / 'in.mcap', frames=10, period=0.05, instances=True)
     params = tmp_path / 'params.yaml'
     params.write_text("'/**':\n  ros__parameters:\n    diagnostics_period: 0.2\n"
                       'optim_node:\n  ros__parameters:\n    act_as_optimiser: true\n')

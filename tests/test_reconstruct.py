@@ -7,6 +7,7 @@ import pytest
 
 from frodo_bringup.cli import main as frodo
 from frodo_bringup.pipeline import PipelineConfig, PipelineError, reconstruct
+from frodo_bringup.preflight import BagRefused
 from frodo_common.bag import BagReader, BagWriter
 from frodo_common.evaluation import EvalObject, evaluate, load_ground_truth_bag, load_predictions
 
@@ -74,7 +75,7 @@ def test_cli_writes_what_frodo_run_writes_and_scores_it(tmp_path, fast_params, c
 
 def test_a_bag_without_masks_is_refused_with_the_cause_and_the_fix(tmp_path, capsys):
     bag = without_topic(DEMO, tmp_path / 'no_masks.mcap', '/camera/instances')
-    with pytest.raises(PipelineError, match='no instance masks.*external.*maskrcnn'):
+    with pytest.raises(BagRefused, match='no instance masks.*external.*maskrcnn'):
         reconstruct(bag)
     assert frodo(['reconstruct', str(bag), '--out', str(tmp_path / 'out')]) == 1
     assert 'backend: maskrcnn' in capsys.readouterr().err and not (tmp_path / 'out').exists()
@@ -82,7 +83,7 @@ def test_a_bag_without_masks_is_refused_with_the_cause_and_the_fix(tmp_path, cap
 
 def test_a_bag_without_poses_is_refused(tmp_path):
     bag = without_topic(DEMO, tmp_path / 'no_poses.mcap', '/camera/pose')
-    with pytest.raises(PipelineError, match='required input.*/camera/pose'):
+    with pytest.raises(BagRefused, match='required input.*/camera/pose'):
         reconstruct(bag)
 
 

@@ -38,6 +38,7 @@ def run(args: argparse.Namespace) -> int:
     from frodo_bringup.cli_demo import score_outputs
     from frodo_bringup.graph import GraphError
     from frodo_bringup.pipeline import PipelineConfig, PipelineError, reconstruct
+    from frodo_bringup.preflight import BagRefused
     from frodo_common.bag import BagError
     if args.threads > 0:
         import torch
@@ -46,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         config = PipelineConfig.from_params_files(args.params)
         result = reconstruct(args.bag, config, progress=None if args.quiet else lambda line: print(line, flush=True))
-    except (PipelineError, BagError, GraphError, FileNotFoundError) as err:
+    except (BagRefused, PipelineError, BagError, GraphError, FileNotFoundError) as err:
         print(f'frodo reconstruct: error: {err}', file=sys.stderr)
         return EXIT_FAILED
     args.out.mkdir(parents=True, exist_ok=True)
@@ -57,11 +58,6 @@ def run(args: argparse.Namespace) -> int:
     phases = ', '.join(f'{name} {secs:.1f} s' for name, secs in result.seconds.items())
     print(f'done: {result.frames} frames, {len(records)} objects, {time.perf_counter() - started:.1f} s ({phases}); '
           f'outputs in {args.out}')
-    if any(m.topic == '/ground_truth/objects' for m in _ground_truth(args.bag)):
+    if result.has_ground_truth:
         score_outputs(args.out, args.bag, 'frodo reconstruct')
     return 0
-
-
-def _ground_truth(bag: Path):
-    from frodo_common.bag import BagReader
-    return BagReader(bag).messages(['/ground_truth/objects'])

@@ -33,6 +33,7 @@ import numpy as np
 from frodo_association.config import AssociationConfig, EvidenceConfig
 from frodo_association.frames import FrameAssociator, config_from_values
 from frodo_bringup.outputs import MESH_DIR, OBJECTS_FILE, _file_stem, write_ply
+from frodo_bringup.preflight import check_bag
 from frodo_common import conversions as conv
 from frodo_common import topics
 from frodo_common.bag import BagReader
@@ -52,7 +53,7 @@ DEPTH_TOPIC = '/camera/depth/image_raw'
 
 
 class PipelineError(RuntimeError):
-    """The bag cannot give objects (missing inputs, unreadable) or the configuration is invalid."""
+    """The configuration is invalid or a layer failed (a bag that cannot give objects: `preflight.BagRefused`)."""
 
 
 @dataclass
@@ -95,14 +96,14 @@ class PipelineConfig:
 @dataclass
 class Frame:
     """One input frame of a bag: stamp (ns), intrinsics K (3, 3), size (W, H), T_world_camera (4, 4), rgb
-    (H, W, 3) uint8, raw instance image (H, W) uint16 or None, depth (H, W) metres or None, the latest SLAM map
+    (H, W, 3) uint8 (None when not asked for), raw instance image (H, W) uint16 or None, depth (H, W) metres or None, the latest SLAM map
     (N, 3) or None."""
 
     stamp: int
     K: np.ndarray
     size: tuple[int, int]
     T_world_camera: np.ndarray
-    rgb: np.ndarray
+    rgb: np.ndarray | None
     instances: np.ndarray | None
     depth_m: np.ndarray | None
     landmarks: np.ndarray | None
@@ -117,6 +118,7 @@ class ObjectMap:
     outcomes: dict[int, ObjectOutcome]
     world_frame: str = 'world'
     frames: int = 0
+    has_ground_truth: bool = False     # the bag has /ground_truth/objects (evaluation only, never read here)
     problems: list[str] = field(default_factory=list)
     seconds: dict[str, float] = field(default_factory=dict)
 
@@ -146,26 +148,10 @@ class ObjectMap:
         return records
 
 
-def check_bag(reader: BagReader, backend: str) -> None:
-    """Raise PipelineError, with the cause and the fix, when the bag cannot give objects."""
-    available = reader.topics()
-    missing = [t for t in (topics.IMAGE, topics.CAMERA_INFO, topics.POSE) if t not in available]
-    if missing:
-        raise PipelineError(f'{reader.path} has no message on the required input(s) {", ".join(missing)} '
-                            f'(CONTRACT.md); it has {", ".join(sorted(available)) or "nothing readable"}')
-    if backend == 'external' and topics.INSTANCES not in available:
-        raise PipelineError(
-            f'{reader.path} has no instance masks ({topics.INSTANCES}) and the detection backend is "external", '
-            'which only filters masks that come with the data: no object can be found. Either add masks (for '
-            '`frodo convert folder`, 16-bit PNGs in the folder\'s instances/; see `frodo convert --help`) or run '
-            'Mask R-CNN on the images: a params file with `detection_node: {ros__parameters: {backend: maskrcnn}}` '
-            '(its COCO checkpoint maskrcnn_resnet50_fpn_v2_coco-73cbd019.pth in $TORCH_HOME/hub/checkpoints/ or '
-            'weights_path).')
-
-
-def bag_frames(reader: BagReader, need_instances: bool) -> Iterator[Frame]:
+def bag_frames(reader: BagReader, need_instances: bool, with_rgb: bool = True) -> Iterator[Frame]:
     """The bag's complete frames in stamp order (image + pose, + instances when `need_instances`; camera info
-    seen before or with the frame). Depth and the latest landmarks are attached when present."""
+    seen before or with the frame). Depth and the latest landmarks are attached when present; the colour image
+    is decoded only `with_rgb` (its presence still counts)."""
     wanted = [topics.IMAGE, topics.CAMERA_INFO, topics.POSE, topics.INSTANCES, DEPTH_TOPIC, topics.SLAM_POINTS]
     camera, landmarks = None, None
     parts: dict[int, dict[str, Any]] = {}
@@ -193,7 +179,7 @@ def bag_frames(reader: BagReader, need_instances: bool) -> Iterator[Frame]:
             if m.topic == topics.CAMERA_INFO:
                 camera = (conv.camera_info_to_K(msg), (int(msg.width), int(msg.height)))
             elif m.topic == topics.IMAGE:
-                parts.setdefault(stamp, {})['image'] = conv.image_to_rgb(msg)
+                parts.setdefault(stamp, {})['image'] = conv.image_to_rgb(msg) if with_rgb else None
             elif m.topic == topics.POSE:
                 parts.setdefault(stamp, {})['pose'] = conv.pose_to_matrix(msg.pose)
             elif m.topic == topics.INSTANCES:
@@ -216,7 +202,8 @@ def reconstruct(bag: str | os.PathLike, config: PipelineConfig | None = None,
                 progress: Callable[[str], None] | None = None, prior: ShapePrior | None = None) -> ObjectMap:
     """Reconstruct every object of a contract bag (see the module docstring). progress: called with one line
     per phase and per object stage; prior: an already loaded prior (default: `config.optim.prior`).
-    Raises PipelineError when the bag cannot give objects (checked before any work) or a layer fails."""
+    Raises preflight.BagRefused when the bag cannot give objects (checked before any work), PipelineError
+    when no frame is complete."""
     config = config or PipelineConfig()
     say = progress or (lambda line: None)
     seconds: dict[str, float] = {}
@@ -234,11 +221,11 @@ def reconstruct(bag: str | os.PathLike, config: PipelineConfig | None = None,
     kept_instances: dict[int, bytes] = {}   # stamp -> filtered instance image (zlib), reused by pass 2
     shapes: dict[int, tuple[int, int]] = {}
     frames = 0
-    for frame in bag_frames(reader, need_instances=detector is None):
+    for frame in bag_frames(reader, need_instances=detector is None, with_rgb=detector is not None):
         raw = detector.detect(frame.rgb) if detector is not None else frame.instances
-        if raw.shape != frame.rgb.shape[:2] or (frame.size[1], frame.size[0]) != raw.shape:
-            reader.problems.append(f'frame {frame.stamp}: instances {raw.shape[::-1]} / image {frame.rgb.shape[1::-1]} '
-                                   f'do not match camera_info {frame.size}; skipped')
+        if (frame.size[1], frame.size[0]) != raw.shape:
+            reader.problems.append(f'frame {frame.stamp}: instances {raw.shape[::-1]} do not match camera_info '
+                                   f'{frame.size}; skipped')
             continue
         instances, _ = filter_instances(raw, filt)
         depth = frame.depth_m if frame.depth_m is not None and frame.depth_m.shape == instances.shape else None
@@ -268,6 +255,10 @@ def reconstruct(bag: str | os.PathLike, config: PipelineConfig | None = None,
         if frame.stamp not in kept_instances:
             continue
         labels = np.frombuffer(zlib.decompress(kept_instances.pop(frame.stamp)), np.uint16).reshape(shapes[frame.stamp])
+        if frame.rgb.shape[:2] != labels.shape:
+            reader.problems.append(f'frame {frame.stamp}: image {frame.rgb.shape[1::-1]} does not match the '
+                                   f'instances {labels.shape[::-1]}; not encoded')
+            continue
         rows = assoc.frame_table(frame.stamp)
         encoder.encode_frame(frame.stamp, frame.rgb, labels, rows)
         depth = frame.depth_m if frame.depth_m is not None and frame.depth_m.shape == labels.shape else None
@@ -298,4 +289,5 @@ def reconstruct(bag: str | os.PathLike, config: PipelineConfig | None = None,
             say(f'object {oid}: {outcome.error}')
         outcomes[oid] = outcome
     seconds['optimisation'] = time.perf_counter() - t0
-    return ObjectMap(dict(reconstructor.estimates), outcomes, config.world_frame, frames, list(reader.problems), seconds)
+    return ObjectMap(dict(reconstructor.estimates), outcomes, config.world_frame, frames,
+                     topics.GROUND_TRUTH in reader.topics(), list(reader.problems), seconds)

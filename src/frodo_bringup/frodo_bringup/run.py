@@ -25,10 +25,11 @@ import numpy as np
 from visualization_msgs.msg import Marker, MarkerArray
 
 from frodo_bringup.graph import (NODES, OPTIMISER, VIEWER, GraphNode, is_optimiser, optimiser_workers,
-                                 with_optimiser_parameters)
+                                 resolve_params_file, section_parameters, with_optimiser_parameters)
 from frodo_bringup.launcher import Launcher, NodeExit
 from frodo_bringup.outputs import current_markers, summary_table, write_outputs
 from frodo_bringup.player import Backpressure, PlayStats, Player, PlayerError
+from frodo_bringup.preflight import BagRefused, check_bag
 from frodo_bringup.session import RosSession
 from frodo_common import topics
 from frodo_common.conversions import cloud_to_table
@@ -232,8 +233,8 @@ def run_bag(bag: str | os.PathLike, out_dir: str | os.PathLike, params_files: Se
     `player_factory(node, bag, rate=, progress=, ground_truth=)` makes the player (e.g. a
     `long_bag.RepeatingPlayer` for soak runs).
 
-    Raises PlayerError (missing or unreadable bag, not an MCAP, required input topics absent) before any
-    node is started.
+    Raises PlayerError (missing or unreadable bag, not an MCAP, required input topics absent, no instance masks
+    with the `external` detection backend: `preflight.check_bag`) before any node is started.
     """
     output = output or sys.stdout
     stop = stop or threading.Event()
@@ -252,10 +253,11 @@ def run_bag(bag: str | os.PathLike, out_dir: str | os.PathLike, params_files: Se
     result = RunResult(EXIT_OK)
     try:
         player = player_factory(session.node, bag, rate=rate, progress=progress, ground_truth=viewer == 'rrd')
-        missing = player.missing_required()
-        if missing:
-            raise PlayerError(f'{player.reader.path} has no message on the required input(s) {", ".join(missing)} '
-                              f'(CONTRACT.md); it has {", ".join(sorted(player.reader.topics()))}')
+        try:
+            check_bag(player.reader, section_parameters([resolve_params_file(f) for f in params_files],
+                                                         'detection_node').get('backend', 'external'))
+        except BagRefused as err:
+            raise PlayerError(str(err)) from err
         collector = OutputCollector(session.node, [n for n in launcher.node_names if is_optimiser(n)] or [OPTIMISER],
                                     pids=lambda: {n: launcher.pids.get(n) for n in launcher.node_names},
                                     log=launcher.log)

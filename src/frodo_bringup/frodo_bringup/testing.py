@@ -22,8 +22,9 @@ def stub(name: str) -> GraphNode:
 
 
 def write_contract_bag(path: str | os.PathLike, frames: int = 10, period: float = 0.1, ground_truth: bool = True,
-                       width: int = 8, height: int = 6) -> list[int]:
-    """A small contract bag (images, camera info, poses, optional ground truth); returns the frame stamps."""
+                       width: int = 8, height: int = 6, instances: bool = False) -> list[int]:
+    """A small contract bag (images, camera info, poses, optional ground truth, optional empty instance images:
+    what `frodo run` needs with the `external` detection backend); returns the frame stamps."""
     stamps = [BAG_START_NS + int(i * period * 1e9) for i in range(frames)]
     K = np.array([[10.0, 0, width / 2], [0, 10.0, height / 2], [0, 0, 1]])
     with BagWriter(path) as bag:
@@ -38,6 +39,9 @@ def write_contract_bag(path: str | os.PathLike, frames: int = 10, period: float 
             bag.write(topics.CAMERA_INFO, conv.make_camera_info(K, width, height, stamp, 'camera'), stamp)
             bag.write(topics.IMAGE, conv.numpy_to_image(image, 'rgb8', stamp, 'camera'), stamp)
             bag.write(topics.POSE, conv.make_pose_stamped(np.eye(4), stamp, 'world'), stamp)
+            if instances:
+                bag.write(topics.INSTANCES, conv.numpy_to_image(np.zeros((height, width), np.uint16), '16UC1', stamp,
+                                                                'camera'), stamp)
     return stamps
 
 

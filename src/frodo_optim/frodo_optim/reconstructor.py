@@ -128,14 +128,15 @@ class ObjectReconstructor:
                           seconds=fused.timings['fused_s'], published=replace_previous))
         if not cfg.sparse_enabled:
             return outcome
-        sparse_stage, result = self._sparse(obj, fused, views, scene)
+        floor = support.scene_floor(scene.tracks, scene.slam_points)
+        sparse_stage, result = self._sparse(obj, fused, views, scene, floor)
         emit(sparse_stage)
         if result is None or not cfg.dense_on:
             return outcome
         if not self.dense_due(obj.object_id, obj.num_views, others_waiting):
             outcome.dense_deferred = True
             return outcome
-        emit(self._dense(obj, sparse_stage.estimate, result, views, scene, should_stop))
+        emit(self._dense(obj, sparse_stage.estimate, result, views, scene, floor, should_stop))
         return outcome
 
     # ------------------------------------------------------------ stages
@@ -156,16 +157,18 @@ class ObjectReconstructor:
         estimate.stage_reason = StageReason.IN_PROGRESS if self.config.sparse_enabled else StageReason.SPARSE_DISABLED
         return estimate
 
-    def _sparse(self, obj: ObjectInput, fused: ObjectEstimate, views: ViewMemory, scene: Scene
+    def _sparse(self, obj: ObjectInput, fused: ObjectEstimate, views: ViewMemory, scene: Scene, floor: float | None
                 ) -> tuple[StageOutcome, SparseResult | None]:
         """The sparse stage; on failure the fused result stays (replacing an older refinement), with the reason."""
         cfg = self.config
         oid = obj.object_id
-        colour = select_views(views.dense_views(oid), cfg.sparse.max_views)
-        photometric = ViewBatch(colour) if colour and cfg.sparse.w_photometric > 0 else None   # sparse runs on CPU
+        photometric = None
+        if cfg.sparse.w_photometric > 0:
+            colour = select_views(views.dense_views(oid), cfg.sparse.max_views)
+            photometric = ViewBatch(colour) if colour else None   # sparse runs on CPU
         t0 = time.perf_counter()
         result = refine(self.prior, obj.code, obj.box, views.sparse_views(oid), scene.slam_points, cfg.sparse,
-                        photometric=photometric, floor_height=support.scene_floor(scene.tracks, scene.slam_points),
+                        photometric=photometric, floor_height=floor,
                         height_range=support.class_height_range(fused.class_name), code_class=fused.class_name,
                         neighbour_boxes=[b for other, (_, b) in scene.tracks.items() if other != oid])
         seconds = time.perf_counter() - t0
@@ -191,7 +194,7 @@ class ObjectReconstructor:
         return StageOutcome(oid, 'sparse', reason, estimate, detail, seconds), result
 
     def _dense(self, obj: ObjectInput, sparse: ObjectEstimate, sparse_result: SparseResult, views: ViewMemory,
-               scene: Scene, should_stop: Callable[[], bool] | None) -> StageOutcome:
+               scene: Scene, floor: float | None, should_stop: Callable[[], bool] | None) -> StageOutcome:
         """The dense stage after a successful sparse stage: the dense estimate, or the sparse one with the reason."""
         oid = obj.object_id
         self.dense_views_used[oid] = obj.num_views
@@ -201,8 +204,7 @@ class ObjectReconstructor:
         t0 = time.perf_counter()
         result, _ = refine_dense_starts(self.prior, sparse.code, sparse.T_world_object, views.dense_views(oid), slam,
                                         box, self.config.dense, should_stop=should_stop,
-                                        floor_height=support.scene_floor(scene.tracks, scene.slam_points),
-                                        height_range=support.class_height_range(sparse.class_name),
+                                        floor_height=floor, height_range=support.class_height_range(sparse.class_name),
                                         alternatives=sparse_result.alternatives, max_starts=self.config.dense_starts)
         seconds = time.perf_counter() - t0
         detail = (f'{result.views} views, {result.iterations} it, {result.seconds:.2f}s '

@@ -68,12 +68,8 @@ class ShapeNode(FrodoNode):
             self.codes_pub.publish(conv.table_to_cloud(codes, stamp, frame_id))
         self._publish_objects(frame_id)
 
-    def fused_codes(self):
-        """Fused code per object (table of OBJECT_CODES_DTYPE) from the current assignment."""
-        return self.encoder.fused_codes()
-
     def _publish_objects(self, frame_id: str) -> None:
-        fused = self.fused_codes()
+        fused = self.encoder.fused_codes()
         now = self.get_clock().now().nanoseconds
         self.objects_pub.publish(conv.table_to_cloud(fused, now, frame_id))
         self.count('object_codes_published')
