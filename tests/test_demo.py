@@ -3,6 +3,7 @@ reconstructs the bundled demo bag, and the result is scored against the bag's gr
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -34,3 +35,4 @@ def test_demo_reconstructs_and_scores_the_demo_bag(tmp_path, capsys):
     assert tables['n_matched'] == tables['n_gt'] and tables['f1'] > 85.0, printed
     assert 'evaluation against the ground truth' in printed
     assert 'optimiser stages per object' in printed and 'stages: ' in printed   # final stage and reason per object
+    assert re.search(r'\[frodo\] object \d+ \((chair|dining table)\): (fused|sparse|dense), ', printed), printed  # progress

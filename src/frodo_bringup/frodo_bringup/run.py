@@ -97,6 +97,7 @@ class OutputCollector:
         self.objects: dict[int, Marker] | None = None
         self.boxes: dict[int, Marker] | None = None
         self.states: dict[int, np.void] = {}
+        self._told: dict[int, tuple[int, int]] = {}   # id -> (stage, stage reason) last said by stage_changes
         self._reports: dict[str, collections.deque[tuple[float, dict[str, str]]]] = {}
         self._lock = threading.Lock()
         node.create_subscription(MarkerArray, topics.OBJECTS, self._on_objects, topics.LATCHED_QOS)
@@ -116,6 +117,22 @@ class OutputCollector:
         table = cloud_to_table(msg)
         with self._lock:
             self.states = {int(row['object_id']): row for row in table}
+
+    def stage_changes(self) -> list[str]:
+        """One line per object whose stage or stage reason changed since the last call (progress while the
+        optimiser works), e.g. 'object 3 (chair): sparse, in progress, 12 views, 4.2 s'."""
+        with self._lock:
+            states = dict(self.states)
+        lines = []
+        for oid, row in sorted(states.items()):
+            now = (int(row['stage']), int(row['stage_reason']))
+            if self._told.get(oid) == now:
+                continue
+            self._told[oid] = now
+            record = states_to_records(row.reshape(1))[oid]
+            lines.append(f'object {oid} ({record["class"]}): {record["stage"]}, {record["stage_reason"]}, '
+                         f'{record["num_views"]} views, {record["timings"]["optimiser_s"]:.1f} s')
+        return lines
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
         now = time.monotonic()
@@ -320,6 +337,8 @@ def _play_and_wait(player: Player, collector: OutputCollector, launcher: Launche
     played = stats.published.get(player.output_topic(topics.IMAGE), 0)
     grace = min(LOST_IMAGES_GRACE, timeout / 2)
     while not stop.is_set() and time.monotonic() < deadline:
+        for line in collector.stage_changes():
+            launcher.log(line)
         if collector.done(launcher.node_names, since=finished, images=played, grace=grace):
             behind = collector.behind(launcher.node_names, played)
             for name, taken, expected, what in behind:
