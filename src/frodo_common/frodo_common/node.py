@@ -50,8 +50,22 @@ DIAGNOSTICS_ATTEMPTS = 3
 TEARDOWN_LIMIT_S = 5.0
 
 
+# Appended to every parameter's description: what `ros2 param describe` shows next to `Read only: true`.
+READ_ONLY_NOTE = 'Read once at start-up: set it with a params file or --ros-args -p, not at run time (read-only).'
+
+
+def parameter_descriptor(spec: ParamSpec) -> ParameterDescriptor:
+    """The descriptor a FroDO parameter is declared with: read-only, since every node reads its parameters once,
+    in its constructor (into `self.params`), and registers no on-set callback; so `ros2 param set` is refused with
+    rclpy's reason ('Trying to set a read-only parameter: NAME.') instead of reporting success for a value the
+    node never reads. Overrides given at start-up (params files, `-p`, `parameter_overrides`) still apply: rclpy
+    applies them when the parameter is declared. A parameter made settable at run time needs an on-set callback
+    that applies it, and a descriptor without read_only."""
+    return ParameterDescriptor(description=f'{spec.description} {READ_ONLY_NOTE}', read_only=True)
+
+
 class FrodoNode(Node):
-    """Node with declared parameters (`self.params`), counters and a periodic `/diagnostics` report.
+    """Node with declared, read-only parameters (`self.params`), counters and a periodic `/diagnostics` report.
 
     Subclasses pass their `ParamSpec`s, add `self.count('frames_received')`-style counters, wrap
     callbacks with `self.guarded(...)` and may override `diagnostic_values()` / `diagnostic_summary()`.
@@ -61,8 +75,7 @@ class FrodoNode(Node):
         super().__init__(node_name, **kwargs)
         self.params: dict[str, Any] = {}
         for spec in COMMON_PARAMS + tuple(specs):
-            value = self.declare_parameter(spec.name, spec.default,
-                                           ParameterDescriptor(description=spec.description)).value
+            value = self.declare_parameter(spec.name, spec.default, parameter_descriptor(spec)).value
             self.params[spec.name] = value
         self.counters: Counter[str] = Counter()
         self.last_error = ''
