@@ -8,21 +8,11 @@ import pytest
 from frodo_bringup.cli import main as frodo
 from frodo_bringup.pipeline import PipelineConfig, PipelineError, reconstruct
 from frodo_bringup.preflight import BagRefused
+from frodo_bringup.testing import FAST_OPTIM_PARAMS as FAST
 from frodo_common.bag import BagReader, BagWriter
 from frodo_common.evaluation import EvalObject, evaluate, load_ground_truth_bag, load_predictions
 
 DEMO = Path(__file__).resolve().parents[1] / 'bags' / 'demo_walk.mcap'
-FAST = """
-optim_node:
-  ros__parameters:
-    sparse_iterations: 4
-    sparse_yaw_candidates: 8
-    sparse_code_restarts: 0
-    dense_iterations: 2
-    dense_starts: 1
-    dense_grid_resolution: 16
-    mesh_resolution: 40
-"""
 
 
 def without_topic(src: Path, dst: Path, topic: str) -> Path:

@@ -25,6 +25,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     'eval': ('frodo_bringup.cli_eval', 'Score objects.json against ground truth (CONTRACT.md protocol).'),
     'train': ('frodo_shape.cli_train', 'Train a shape prior (joint SDF + point decoder).'),
     'bench': ('frodo_bringup.cli_bench', 'Benchmarks: decoder, optimiser, association, demo run; JSON + plots.'),
+    'report': ('frodo_bringup.cli_report', 'Run the evaluation sets offline and write the results page (docs/results.md).'),
     'demo': ('frodo_bringup.cli_demo', 'Reconstruct the demo bag (or a fresh synthetic scene) and score it against its ground truth.'),
 }
 

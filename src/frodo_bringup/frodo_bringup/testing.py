@@ -15,6 +15,20 @@ from frodo_common.bag import BagWriter, qos_yaml
 
 BAG_START_NS = 1_700_000_000_000_000_000
 
+# Optimiser settings that make a whole demo-bag reconstruction take seconds (tests of wiring and outcomes, not
+# of accuracy): few iterations, one dense start, coarse grids.
+FAST_OPTIM_PARAMS = """
+optim_node:
+  ros__parameters:
+    sparse_iterations: 4
+    sparse_yaw_candidates: 8
+    sparse_code_restarts: 0
+    dense_iterations: 2
+    dense_starts: 1
+    dense_grid_resolution: 16
+    mesh_resolution: 40
+"""
+
 
 def stub(name: str) -> GraphNode:
     """A graph entry running `frodo_bringup.stub_node` under the node name `name`."""
