@@ -17,6 +17,12 @@ Sections (each a function returning plain data; a section that cannot run says w
   per frame, /diagnostics intervals (frodo_bringup.soak; OUT/soak/soak.json + soak.png).
 - `optim_workers` (not in the default set: one demo run per worker count): objects per minute against the
   number of optimiser workers, 1 and 2 (frodo_bringup.bench_workers).
+
+What it reads is found as `frodo demo` finds its bag: relative to the working directory (`repo_path`), so run it
+from the repository root or pass `--bag`; never from this module's location, which in an installed package
+(colcon's install/, site-packages) has no repository above it. The bench/ scripts are not installed: from
+elsewhere their sections are skipped with a note. Outputs go to `--out` (default: out/bench, also relative to the
+working directory).
 """
 from __future__ import annotations
 
@@ -35,17 +41,34 @@ from typing import Any, Callable
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[3]
-BENCH_DIR = REPO / 'bench'
-DEMO_BAG = REPO / 'bags' / 'demo_walk.mcap'
+# Relative to the working directory (repo_path): the demo bag is `frodo demo`'s default (cli_demo.DEFAULT_BAG).
+BENCH_DIR = Path('bench')
+DEMO_BAG = Path('bags/demo_walk.mcap')
 # Paper figures (supplementary Table "Speed comparison", 60-frame sequence; hardware not stated there).
 PAPER = {'sparse_s_per_iteration': 0.07, 'dense_s_per_iteration': 4.96, 'pmo_s_per_iteration': 12.59,
          'sparse_iterations': 200, 'dense_iterations': 100}
 
 
+def repo_path(relative: str | os.PathLike) -> Path:
+    """Where `frodo bench` finds a repository file it reads (bags/demo_walk.mcap, bench/<name>.py): as given when
+    absolute, else relative to the working directory, as `frodo demo` finds its bag; whether it exists is for the
+    caller to say (`demo_bag`, `load_bench_script`)."""
+    path = Path(relative)
+    return path if path.is_absolute() else Path.cwd() / path
+
+
+def demo_bag(bag: str | os.PathLike = DEMO_BAG) -> Path:
+    """The bag the bag sections read; FileNotFoundError (recorded as the section's error) when it is not there."""
+    path = repo_path(bag)
+    if not path.is_file():
+        raise FileNotFoundError(f'{bag} not found in {Path.cwd()} (run from the repository root, or pass --bag)')
+    return path
+
+
 def load_bench_script(name: str) -> ModuleType | None:
-    """bench/<name>.py of the source tree as a module, or None when it is not there (an installed package)."""
-    path = BENCH_DIR / f'{name}.py'
+    """bench/<name>.py of the repository as a module, or None when it is not there (run elsewhere than the
+    repository root, e.g. with an installed package)."""
+    path = repo_path(BENCH_DIR / f'{name}.py')
     if not path.is_file():
         return None
     spec = importlib.util.spec_from_file_location(f'frodo_bench_{name}', path)
@@ -81,7 +104,8 @@ def machine_info(device: str) -> dict[str, Any]:
     except OSError:
         pass
     try:
-        commit = subprocess.run(['git', '-C', str(REPO), 'rev-parse', '--short', 'HEAD'], capture_output=True,
+        # The checkout it runs in (the working directory's, where the bag and bench/ come from); '' outside one.
+        commit = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], capture_output=True,
                                 text=True, timeout=5).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         commit = ''
@@ -118,6 +142,7 @@ def bag_read_throughput(bag: Path) -> dict[str, Any]:
     from frodo_common import conversions as conv
     from frodo_common import topics
     from frodo_common.bag import BagReader
+    bag = demo_bag(bag)
     t0 = time.perf_counter()
     reader = BagReader(bag)
     messages = list(reader.messages())
@@ -154,8 +179,8 @@ def _timing_sweep(script: str, views: list[int], iterations: int, device: str) -
     import torch
     rows = []
     for n in views:
-        proc = subprocess.run([sys.executable, str(BENCH_DIR / f'{script}.py'), 'timing', '--views', str(n),
-                               '--iterations', str(iterations), '--device', device,
+        proc = subprocess.run([sys.executable, str(repo_path(BENCH_DIR / f'{script}.py')), 'timing',
+                               '--views', str(n), '--iterations', str(iterations), '--device', device,
                                '--threads', str(torch.get_num_threads())],
                               capture_output=True, text=True, timeout=1800)
         if proc.returncode != 0:
@@ -205,6 +230,7 @@ def end_to_end(bag: Path, out: Path, rate: float) -> dict[str, Any]:
     from frodo_bringup.run import run_bag
     from frodo_bringup.session import RosSession
     from frodo_common import topics
+    bag = demo_bag(bag)
     arrivals: dict[str, list[float]] = {}     # when the probe received each report
     sent: dict[str, list[float]] = {}         # header stamps: when the node published it
     last: dict[str, dict[str, str]] = {}
@@ -309,20 +335,21 @@ def write_plots(doc: dict[str, Any], out: Path) -> list[str]:
 
 
 def run_all(out: Path, quick: bool, device: str, sections: list[str], log: Callable[[str], None],
-            soak_frames: int = 10_000, soak_rate: float = 2.0) -> dict[str, Any]:
-    """Every requested section, each timed and isolated (an exception is recorded, the others still run)."""
+            soak_frames: int = 10_000, soak_rate: float = 2.0, bag: str | os.PathLike = DEMO_BAG) -> dict[str, Any]:
+    """Every requested section, each timed and isolated (an exception is recorded, the others still run);
+    `bag` (relative to the working directory unless absolute) feeds bag_read, end_to_end, soak and optim_workers."""
     out.mkdir(parents=True, exist_ok=True)
     views = [5, 35] if quick else [5, 10, 20, 35, 60]
     plan: dict[str, Callable[[], dict[str, Any]]] = {
         'decoder': lambda: decoder_throughput(device, quick),
-        'bag_read': lambda: bag_read_throughput(DEMO_BAG),
+        'bag_read': lambda: bag_read_throughput(bag),
         'sparse': lambda: optimiser_sweep('bench_sparse', views, 10 if quick else 30, 1 if quick else 3, device),
         'dense': lambda: optimiser_sweep('bench_dense', [5, 10] if quick else [5, 10, 20, 35], 2 if quick else 3,
                                          1, device),
         'association': lambda: association_latency([2, 10] if quick else [1, 2, 5, 10, 20], 40 if quick else 200),
-        'end_to_end': lambda: end_to_end(DEMO_BAG, out / 'demo_run', rate=1.0),
-        'soak': lambda: _soak(out / 'soak', soak_frames, soak_rate, doc['machine'], log),
-        'optim_workers': lambda: _optim_workers(out / 'optim_workers', quick, log),
+        'end_to_end': lambda: end_to_end(bag, out / 'demo_run', rate=1.0),
+        'soak': lambda: _soak(demo_bag(bag), out / 'soak', soak_frames, soak_rate, doc['machine'], log),
+        'optim_workers': lambda: _optim_workers(demo_bag(bag), out / 'optim_workers', quick, log),
     }
     doc: dict[str, Any] = {'machine': machine_info(device), 'quick': quick, 'paper': PAPER}
     for name in sections:
@@ -341,15 +368,16 @@ def run_all(out: Path, quick: bool, device: str, sections: list[str], log: Calla
     return doc
 
 
-def _soak(out: Path, frames: int, rate: float, machine: dict[str, Any], log: Callable[[str], None]) -> dict[str, Any]:
+def _soak(bag: Path, out: Path, frames: int, rate: float, machine: dict[str, Any],
+          log: Callable[[str], None]) -> dict[str, Any]:
     from frodo_bringup.soak import soak
     subtitle = f"{machine['cpu']} ({machine['logical_cpus']} CPUs, load {machine['load_average_1min']})"
-    return soak(out, frames=frames, rate=rate, subtitle=subtitle, log=log)
+    return soak(out, frames=frames, rate=rate, bag=bag, subtitle=subtitle, log=log)
 
 
-def _optim_workers(out: Path, quick: bool, log: Callable[[str], None]) -> dict[str, Any]:
+def _optim_workers(bag: Path, out: Path, quick: bool, log: Callable[[str], None]) -> dict[str, Any]:
     from frodo_bringup.bench_workers import objects_per_minute
-    return objects_per_minute(DEMO_BAG, out, workers=(1, 2), rate=1.0, quick=quick, log=log)
+    return objects_per_minute(bag, out, workers=(1, 2), rate=1.0, quick=quick, log=log)
 
 
 SECTIONS = ('decoder', 'bag_read', 'sparse', 'dense', 'association', 'end_to_end')   # the default set

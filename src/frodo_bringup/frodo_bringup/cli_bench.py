@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from frodo_bringup.bench import ALL_SECTIONS, SECTIONS, run_all, summary
+from frodo_bringup.bench import ALL_SECTIONS, DEMO_BAG, SECTIONS, run_all, summary
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -15,6 +15,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--out', default='out/bench', metavar='DIR',
                         help='output directory: bench.json, optimiser.png, association.png, diagnostics.png, '
                              'soak/soak.json + soak.png (default: %(default)s)')
+    parser.add_argument('--bag', default=str(DEMO_BAG), metavar='BAG',
+                        help='contract bag of the bag_read, end_to_end, soak and optim_workers sections, relative to '
+                             'the working directory like the bench/ scripts (default: %(default)s, as frodo demo)')
     parser.add_argument('--quick', action='store_true',
                         help='fewer views, objects, frames and repeats (a few minutes on 2 CPUs)')
     parser.add_argument('--only', nargs='+', choices=ALL_SECTIONS, metavar='SECTION',
@@ -45,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     doc = run_all(out, args.quick, device, list(args.only or SECTIONS),
                   log=lambda text: print(f'frodo bench: {text}', file=sys.stderr, flush=True),
-                  soak_frames=args.soak_frames, soak_rate=args.soak_rate)
+                  soak_frames=args.soak_frames, soak_rate=args.soak_rate, bag=args.bag)
     (out / 'bench.json').write_text(json.dumps(doc, indent=2) + '\n')
     print(summary(doc))
     print(f'written: {out / "bench.json"}' + ''.join(f', {out / p}' for p in doc['plots']))
