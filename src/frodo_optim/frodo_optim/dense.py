@@ -296,7 +296,8 @@ def refine_dense_starts(prior, code, T_world_object: np.ndarray, views: list[Den
 
     Why: on real captures the dense stage ends in a start-dependent basin (the same object from two sparse
     estimates ended 20-35 points of F1@5cm apart), and its check energy -- same views, rays, landmarks and
-    priors for every start -- picked the better end state 7 times in 10 (optim README, "Dense starts").
+    priors for every start -- picked the better end state 7 times in 10 (docs/experiments/frodo_optim_history.md,
+    "Dense starts").
     A later start wins only with a check energy below the first start's best (which is never above the sparse
     result's own), so the result is never worse, by the energy, than the dense stage from the sparse result.
     A result from a later start is marked improved (it replaces the sparse estimate) even if its own run did
@@ -390,7 +391,8 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
     z = torch.as_tensor(code, device=dev).clone().requires_grad_(cfg.optimise_code)
     w = torch.zeros(3, device=dev, requires_grad=True)
     # Option: furniture stands upright in a gravity-aligned world. With any rotation free the real-capture outputs
-    # lean by a median 3 deg (up to 13), yet holding them upright did not score better (optim README, "Upright").
+    # lean by a median 3 deg (up to 13), yet holding them upright did not score better
+    # (docs/experiments/frodo_optim_history.md, "Upright").
     axes = torch.tensor([0.0, 0.0, 1.0] if cfg.upright else [1.0, 1.0, 1.0], device=dev)
     t = torch.as_tensor(T0[:3, 3], dtype=torch.float32, device=dev).clone().requires_grad_(True)
     log_s = torch.tensor(math.log(s0), device=dev, requires_grad=True)

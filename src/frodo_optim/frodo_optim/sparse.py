@@ -76,7 +76,8 @@ class SparseConfig:
     w_code: float = 0.01
     w_photometric: float = 0.0        # Ep (photometric.py); needs refine(..., photometric=ViewBatch)
     geometry_truncation: float = 0.1  # metres
-    lr_code: float = 0.02             # beyond 0.005: lets the code leave the encoder's (README "Code freedom")
+    lr_code: float = 0.02             # beyond 0.005: lets the code leave the encoder's
+                                      # (docs/experiments/frodo_optim_history.md, "Code freedom")
     lr_translation: float = 0.01      # metres per step (Adam)
     lr_yaw: float = 0.02              # radians per step
     lr_log_scale: float = 0.01
