@@ -217,7 +217,7 @@ def fit_box(K: np.ndarray, T_camera_world: np.ndarray, boxes: np.ndarray, edge_v
         # 103 boxes 36-43 deg off with it, none with the fresh start; scipy's solver from the warm start: 1).
         starts = [np.concatenate([init.center[:n_center], np.clip(np.log(init.size), *clip), [init.yaw]]), starts[0]]
     # All starts in one batched solve; ftol 1e-5: 1e-6 took 13 % more evaluations on the benchmark walks' fits for
-    # evaluation figures within 0.002 m and 0.2 deg (README, "Latency").
+    # evaluation figures within 0.002 m and 0.2 deg (docs/experiments/frodo_association_history.md, "Latency").
     solutions, costs = soft_l1_least_squares(residuals_and_jacobian, np.array(starts), lower, upper, f_scale=0.05,
                                              max_evals=50, ftol=1e-5)
     best = solutions[int(np.argmin(costs))]

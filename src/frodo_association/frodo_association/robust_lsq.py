@@ -20,7 +20,7 @@ box bounds, for S starting points in one batched Levenberg-Marquardt iteration:
 Same objective, different path: on a nonconvex fit (the extreme corner of a box edge switches, yaw has a basin
 per quarter turn) the two solvers can end in different local minima. On 247 box fits recorded from the
 benchmark walks and two handheld scenes, from the same inputs, this one ended within 0.1 % of scipy's cost in
-194, lower in 41, higher in 12 (`src/frodo_association/README.md`, "Latency").
+194, lower in 41, higher in 12 (`docs/experiments/frodo_association_history.md`, "Latency").
 """
 from __future__ import annotations
 

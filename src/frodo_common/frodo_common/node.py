@@ -307,4 +307,8 @@ def run_node(node_factory: Callable[[], Node], args: list[str] | None = None, th
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+        # Frozen objects are never collected, not even at exit: cycles among them (triton's IR attributes,
+        # imported through torchvision -> torch._dynamo) outlive their extension's teardown, which then prints
+        # ~50 'nanobind: leaked ...' lines. Unfrozen, the interpreter's final collection frees them.
+        gc.unfreeze()
     return 0
