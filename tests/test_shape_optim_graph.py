@@ -7,6 +7,7 @@ paper Sec. 4.3),
 and the mesh scores well against the bag's ground truth (CONTRACT.md protocol). Bad input (detections of
 another size than the image, a box with NaN) is reported on /diagnostics and survived.
 """
+import time
 from pathlib import Path
 
 import numpy as np
@@ -152,6 +153,16 @@ def test_shape_and_optimiser_nodes_reconstruct_an_object_from_the_demo_bag():
         assert result.overall.recall == 50.0 and len(result.pairs) == 1   # one of the two tables
         assert result.pairs[0].centroid_distance_m < 0.1 and result.pairs[0].f1 > 80.0, result.table()
         assert status('shape_node')['objects'] == '1'
+        # Every output keeps the bag's time (2023), never the nodes' clocks: per-frame codes their frame's stamp,
+        # the fused codes the newest frame encoded, the object's markers the newest frame its estimate used (the
+        # track came with the first frame's stamp), the state table the newest frame the optimiser received.
+        newest = max(f[0] for f in frames)
+        assert sorted(conv.stamp_to_ns(m.header.stamp) for m in codes) == sorted(f[0] for f in frames)
+        assert conv.stamp_to_ns(object_codes[-1].header.stamp) == newest
+        assert {conv.stamp_to_ns(m.header.stamp) for m in objects[-1].markers + boxes[-1].markers
+                if m.id == OBJECT_ID} == {newest}
+        assert conv.stamp_to_ns(states[-1].header.stamp) == newest
+        assert time.time_ns() - newest > 365 * 86400 * 10**9       # the bag is from 2023, not now()
     finally:
         executor.shutdown()
         rclpy.shutdown()

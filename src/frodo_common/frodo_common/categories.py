@@ -15,22 +15,25 @@ class Category:
         (paper Sec. 4.1: "knowledge of the object class sets reasonable bounds on the object scale").
     height_range: (min, max) plausible metric height in metres (floor to top). The optimiser's class
         height prior (frodo_optim.support, beyond the paper) keeps reconstructions inside it.
+    colour: (r, g, b) in [0, 1], the class's colour wherever objects are drawn by class (the optimiser's
+        markers, the Rerun recording's detections and tracks).
     """
 
     coco_id: int
     name: str
     size_range: tuple[float, float]
     height_range: tuple[float, float] = (0.0, float('inf'))
+    colour: tuple[float, float, float] = (0.7, 0.7, 0.7)
 
 
 # Size ranges cover the procedural library and common real furniture (ScanNet/Redwood chairs
 # are 0.4-1.2 m tall; dining tables 0.6-2.4 m long). Heights: chairs from low stools to office chairs
 # with head rests (procedural library up to 1.28 m), tables from coffee tables to standing desks.
 CATEGORIES: tuple[Category, ...] = (
-    Category(62, 'chair', (0.35, 1.3), (0.4, 1.35)),
-    Category(63, 'couch', (0.8, 2.6), (0.5, 1.2)),
-    Category(65, 'bed', (1.2, 2.4), (0.25, 1.5)),
-    Category(67, 'dining table', (0.5, 2.6), (0.3, 1.15)),
+    Category(62, 'chair', (0.35, 1.3), (0.4, 1.35), (0.95, 0.55, 0.15)),
+    Category(63, 'couch', (0.8, 2.6), (0.5, 1.2), (0.6, 0.35, 0.8)),
+    Category(65, 'bed', (1.2, 2.4), (0.25, 1.5), (0.85, 0.3, 0.45)),
+    Category(67, 'dining table', (0.5, 2.6), (0.3, 1.15), (0.2, 0.6, 0.95)),
 )
 
 BY_COCO_ID: dict[int, Category] = {c.coco_id: c for c in CATEGORIES}

@@ -24,6 +24,8 @@ class ObjectEstimate:
     T_world_object: (4, 4) similarity, x_world = scale * R @ x_normalised + t.
     box: (centre (3,), size (3,), yaw) of the mesh's upright box in the world.
     stage: 'fused' | 'sparse' | 'dense' (states.STAGES); stage_reason: index into states.STAGE_REASONS.
+    stamp_ns: data time of the estimate, the stamp (ns, the bag's or the sensor's clock) of the newest frame it
+    was made from (0: unknown); the optimiser stamps the object's markers with it, never with the wall clock.
     """
 
     object_id: int
@@ -38,6 +40,7 @@ class ObjectEstimate:
     mesh_world: trimesh.Trimesh
     timings: dict[str, float] = field(default_factory=dict)
     stage_reason: int = 0           # index into states.STAGE_REASONS: why the object ends at `stage`
+    stamp_ns: int = 0               # stamp of the newest frame the estimate used (data time, not wall time)
 
 
 def place_from_box(mesh_normalised: trimesh.Trimesh, center, size, yaw: float):
@@ -70,11 +73,12 @@ def world_box(mesh_normalised: trimesh.Trimesh, T_world_object: np.ndarray, yaw:
 
 
 def fused_estimate(object_id: int, class_name: str, category: int, code: np.ndarray, num_views: int,
-                   mesh_normalised: trimesh.Trimesh, track_box) -> ObjectEstimate:
-    """ObjectEstimate of the fused stage from a decoded mesh and the association's box."""
+                   mesh_normalised: trimesh.Trimesh, track_box, stamp_ns: int = 0) -> ObjectEstimate:
+    """ObjectEstimate of the fused stage from a decoded mesh and the association's box (stamp_ns: its data time)."""
     center, size, yaw = track_box
     T, scale, chosen = place_from_box(mesh_normalised, center, size, yaw)
     mesh_world = mesh_normalised.copy()
     mesh_world.apply_transform(T)
     return ObjectEstimate(object_id, class_name, int(category), np.asarray(code, dtype=np.float32), T, scale,
-                          world_box(mesh_normalised, T, chosen), int(num_views), 'fused', mesh_world)
+                          world_box(mesh_normalised, T, chosen), int(num_views), 'fused', mesh_world,
+                          stamp_ns=int(stamp_ns))

@@ -5,8 +5,8 @@ A map directory holds `objects.json` and `meshes/<id>_<class>.ply` (world frame)
 --out` writes, so `frodo eval --pred MAP_DIR` reads it too. Each record carries what the run's
 objects.json has (id, class, 4x4 object-to-world pose, scale, box, shape code, views, stage, stage reason,
 timings, mesh) plus what the optimiser needs to continue: the COCO category, the shape node's fused code
-and view count the estimate was made from (`fused_code`, `fused_views`) and the association's box
-(`track`). The objects.json of a `frodo run --out` folder loads as well (category from the class name, no
+and view count the estimate was made from (`fused_code`, `fused_views`), the association's box
+(`track`) and the estimate's data time (`stamp_ns`: the newest frame stamp it used; optional, 0 when absent). The objects.json of a `frodo run --out` folder loads as well (category from the class name, no
 fused code or track), so a run can go on from another run's output. With several optimiser workers each
 writes its own map in `DIR/worker_<k>/`; loading reads
 `DIR` and every `DIR/worker_*/`, keeping the objects the loading worker owns, so a map can be resumed with
@@ -90,6 +90,7 @@ def _record(obj: MapObject, mesh_file: str) -> dict[str, Any]:
         'code': _floats(est.code), 'num_views': int(est.num_views), 'stage': est.stage,
         'stage_reason': STAGE_REASONS[est.stage_reason] if 0 <= est.stage_reason < len(STAGE_REASONS) else None,
         'timings': {k: float(v) for k, v in est.timings.items()},
+        'stamp_ns': int(est.stamp_ns),
         'mesh': mesh_file, 'mesh_faces': int(len(est.mesh_world.faces)),
         'fused_code': _floats(obj.fused_code) if obj.fused_code is not None else None,
         'fused_views': int(obj.fused_views),
@@ -178,7 +179,8 @@ def _map_object(record: dict, directory: Path) -> MapObject:
                               int(category) if category is not None else category_by_name(record['class']).coco_id,
                               _vector(record, 'code').astype(np.float32), pose, scale, _box(record['box']),
                               int(record['num_views']), stage, mesh,
-                              {str(k): float(v) for k, v in (record.get('timings') or {}).items()}, reason_index)
+                              {str(k): float(v) for k, v in (record.get('timings') or {}).items()}, reason_index,
+                              int(record.get('stamp_ns') or 0))
     fused = record.get('fused_code')
     track = record.get('track')
     return MapObject(estimate, _vector(record, 'fused_code').astype(np.float32) if fused is not None else None,

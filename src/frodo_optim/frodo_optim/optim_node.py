@@ -12,6 +12,10 @@ In:  /frodo/tracks (latched MarkerArray of boxes), /frodo/object_codes (latched 
 Out: /frodo/objects (contract: TRIANGLE_LIST per object, world vertices), /frodo/boxes (contract: CUBE per
      object), /frodo/object_states (latched table for the command line's objects.json), /diagnostics with
      state idle|busy and pending_objects.
+Stamps are data time, never the node clock: each object's markers carry its estimate's stamp (the newest
+frame of the box, code and views it was made from, `ObjectEstimate.stamp_ns`); DELETEs and the state table
+the newest stamp the node has received (`data_stamp`). So a recording of a bag keeps one time line, with or
+without /clock and use_sim_time. Only /diagnostics is on the node clock.
 
 Several workers (parameters worker_index k, worker_count N) split the objects by id (id % N == k): each takes
 only its own objects' tracks, codes and views; workers 1..N-1 publish their share of the outputs on internal
@@ -35,6 +39,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from frodo_common import conversions as conv
 from frodo_common import topics
+from frodo_common.categories import CATEGORIES
 from frodo_common.node import ERROR, OK, WARN, FrodoNode, run_node
 from frodo_common.frame_cache import FrameCache
 from frodo_common.params import ParamSpec
@@ -62,7 +67,7 @@ PARAMS = OPTIM_PARAMS + (
               "republished at once; '' starts empty."),
 )
 
-CLASS_COLOURS = {'chair': (0.95, 0.55, 0.15, 1.0), 'dining table': (0.2, 0.6, 0.95, 1.0)}
+CLASS_COLOURS = {c.name: (*c.colour, 1.0) for c in CATEGORIES}   # chair orange, dining table blue, ...
 
 
 class OptimNode(FrodoNode):
@@ -92,6 +97,9 @@ class OptimNode(FrodoNode):
         self.dense_stale: set[int] = set()                          # dense deferred; run when the queue empties
         self.force_dense: set[int] = set()
         self.depth_cache: OrderedDict[int, np.ndarray] = OrderedDict()
+        self.stamp_lock = threading.Lock()
+        self.data_stamp = 0                                         # newest stamp (ns) of any input received
+        self.input_stamps: dict[int, int] = {}                      # id -> newest stamp of its track and code
         parts = ('detections', 'associations', 'pose') + (('image',) if self.config.dense_on else ())
         self.frames = FrameCache(parts, int(self.params['frame_cache_size']))
         # Alone or worker 0: the contract topics; worker k >= 1: its share topics, merged by worker 0.
@@ -157,10 +165,17 @@ class OptimNode(FrodoNode):
         self.reconstructor.estimates = value
 
     # ------------------------------------------------------------ inputs
+    def _saw(self, stamp_ns: int) -> None:
+        """Note the data time of an input (the outputs' stamps come from these, not from the clock)."""
+        with self.stamp_lock:
+            self.data_stamp = max(self.data_stamp, int(stamp_ns))
+
     def _on_tracks(self, msg: MarkerArray) -> None:
         self.count('tracks_received')
         with self.cond:
             for m in msg.markers:
+                stamp = conv.stamp_to_ns(m.header.stamp)
+                self._saw(stamp)
                 if m.action != Marker.DELETEALL and not self.owns(m.id):
                     continue
                 if m.action == Marker.DELETEALL:
@@ -177,6 +192,7 @@ class OptimNode(FrodoNode):
                         continue
                     if np.all(np.isfinite(box[0])) and np.all(np.isfinite(box[1])) and np.all(box[1] > 0):
                         self.tracks[m.id] = (m.ns, box)
+                        self.input_stamps[m.id] = max(self.input_stamps.get(m.id, 0), stamp)
                         self.pending.add(m.id)
                     else:
                         self.report_error('tracks', f'object {m.id}: invalid box {box}')
@@ -185,6 +201,8 @@ class OptimNode(FrodoNode):
     def _on_codes(self, msg: PointCloud2) -> None:
         self.count('object_codes_received')
         table = conv.cloud_to_table(msg)
+        stamp = conv.stamp_to_ns(msg.header.stamp)
+        self._saw(stamp)
         with self.cond:
             for row in table:
                 oid = int(row['object_id'])
@@ -197,6 +215,7 @@ class OptimNode(FrodoNode):
                 old = self.codes.get(oid)
                 if old is None or old[1] != int(row['num_views']) or not np.array_equal(old[2], code):
                     self.codes[oid] = (int(row['category']), int(row['num_views']), code)
+                    self.input_stamps[oid] = max(self.input_stamps.get(oid, 0), stamp)
                     self.pending.add(oid)
             self.cond.notify()
 
@@ -219,6 +238,7 @@ class OptimNode(FrodoNode):
                 self.depth_cache.popitem(last=False)
 
     def _on_slam_points(self, msg: PointCloud2) -> None:
+        self._saw(conv.stamp_to_ns(msg.header.stamp))
         points = conv.cloud_to_xyz(msg)
         with self.cond:
             self.slam_points = points[np.isfinite(points).all(1)] if len(points) else points
@@ -226,6 +246,7 @@ class OptimNode(FrodoNode):
     def _on_frame_part(self, msg, part: str) -> None:
         self.count(f'{part}_received')
         stamp = conv.stamp_to_ns(msg.header.stamp)
+        self._saw(stamp)
         if part == 'associations' and stamp in self.frames.completed:
             rows = conv.cloud_to_table(msg)       # a re-send after merges: move the stored views
             with self.cond:
@@ -291,8 +312,9 @@ class OptimNode(FrodoNode):
                 self.pending.discard(oid)
                 self.busy = oid
                 track, codes = self.tracks.get(oid), self.codes.get(oid)
+                stamp = self.input_stamps.get(oid, 0)
             try:
-                self._reconstruct(oid, track, codes)
+                self._reconstruct(oid, track, codes, stamp)
             except Exception as err:  # noqa: BLE001 - one bad object must not stop the others
                 self.report_error(f'object {oid}', err)
             finally:
@@ -300,7 +322,7 @@ class OptimNode(FrodoNode):
                     self.busy = None
                     self.force_dense.discard(oid)
 
-    def _reconstruct(self, oid: int, track, codes) -> None:
+    def _reconstruct(self, oid: int, track, codes, stamp_ns: int = 0) -> None:
         if track is None or codes is None or codes[1] < self.config.min_views:
             # A resumed object stays until the association deletes its track: its fused code may come first.
             if track is None and oid in self.estimates and oid not in self.resumed:
@@ -324,7 +346,7 @@ class OptimNode(FrodoNode):
             scene = Scene(self.slam_points, dict(self.tracks))
             others_waiting = bool(self.pending) and oid not in self.force_dense
         outcome = self.reconstructor.reconstruct(
-            ObjectInput(oid, class_name, category, box, code, views), self.views, scene,
+            ObjectInput(oid, class_name, category, box, code, views, stamp_ns), self.views, scene,
             others_waiting=others_waiting, should_stop=lambda: self.stopping,   # shutdown does not wait for dense
             on_stage=self._on_stage)
         if outcome.error:
@@ -346,10 +368,10 @@ class OptimNode(FrodoNode):
 
     # ------------------------------------------------------------ outputs
     def _mesh_marker(self, est: ObjectEstimate, stamp_ns: int, frame: str, rgba) -> Marker:
-        """The TRIANGLE_LIST marker of an estimate, built once per estimate and re-stamped afterwards: a map of
-        n objects is republished after every stage of every object, and building all n markers each time made
-        ~40k Point messages per object; they set off full garbage collections that held the GIL for up to a
-        second (optim_node's /diagnostics came 1.4-2.4 s apart under load)."""
+        """The TRIANGLE_LIST marker of an estimate (stamped `stamp_ns`, its data time), built once per estimate:
+        a map of n objects is republished after every stage of every object, and building all n markers each
+        time made ~40k Point messages per object; they set off full garbage collections that held the GIL for
+        up to a second (optim_node's /diagnostics came 1.4-2.4 s apart under load)."""
         cached = self.mesh_markers.get(est.object_id)
         if cached is not None and cached[0] is est:   # same estimate: same mesh, class and colour
             cached[1].header.stamp = conv.ns_to_stamp(stamp_ns)
@@ -359,11 +381,16 @@ class OptimNode(FrodoNode):
         self.mesh_markers[est.object_id] = (est, marker)
         return marker
 
+    def _map_stamp(self, estimates) -> int:
+        """Data time of a map message (its DELETEs, the state table): the newest stamp received or estimated."""
+        with self.stamp_lock:
+            return max([self.data_stamp] + [int(e.stamp_ns) for e in estimates])
+
     def _publish(self) -> None:
-        now = self.get_clock().now().nanoseconds
         frame = self.params['world_frame']
         objects, boxes = MarkerArray(), MarkerArray()
         estimates = sorted(self.estimates.values(), key=lambda e: e.object_id)
+        now = self._map_stamp(estimates)
         current = {(est.class_name, est.object_id) for est in estimates}
         # Every object this worker published and has since dropped gets a DELETE in every message, first (a
         # listener keyed by id then keeps an object whose class changed): a listener that missed a message still
@@ -373,9 +400,10 @@ class OptimNode(FrodoNode):
             boxes.markers.append(conv.delete_marker(ns, oid, now, frame))
         for est in estimates:
             rgba = CLASS_COLOURS.get(est.class_name, (0.7, 0.7, 0.7, 1.0))
-            objects.markers.append(self._mesh_marker(est, now, frame, rgba))
+            stamp = int(est.stamp_ns) or now       # 0: a map resumed from a file without stamps
+            objects.markers.append(self._mesh_marker(est, stamp, frame, rgba))
             center, size, yaw = est.box
-            boxes.markers.append(conv.box_to_marker(center, size, yaw, est.class_name, est.object_id, now, frame,
+            boxes.markers.append(conv.box_to_marker(center, size, yaw, est.class_name, est.object_id, stamp, frame,
                                                     rgba[:3] + (0.35,)))
         states = estimates_table(estimates)
         self.mesh_markers = {oid: entry for oid, entry in self.mesh_markers.items() if oid in self.estimates}
@@ -401,6 +429,8 @@ class OptimNode(FrodoNode):
         """Worker 0: another worker's share of `kind`; the merged map of that kind is published again."""
         self.count('shares_received')
         table = conv.cloud_to_table(msg) if kind == TABLE_KIND else None
+        stamps = [msg.header.stamp] if table is not None else [m.header.stamp for m in msg.markers]
+        self._saw(max((conv.stamp_to_ns(s) for s in stamps), default=0))
         with self.merge_lock:
             if table is None:
                 self.merger.put_markers(kind, worker, msg)
@@ -410,7 +440,7 @@ class OptimNode(FrodoNode):
 
     def _publish_merged(self, kind: str) -> None:
         """Worker 0 (under merge_lock): the complete map of `kind` from every share heard of (CONTRACT.md)."""
-        now, frame = self.get_clock().now().nanoseconds, self.params['world_frame']
+        now, frame = self._map_stamp(()), self.params['world_frame']    # data time, as each share's
         if kind == TABLE_KIND:
             table = self.merger.merged_table()
             if table is not None:

@@ -9,6 +9,9 @@ For one object (its association box, fused code and stored views) `ObjectReconst
   unless the object's views grew by `dense_rerun_growth` since its last dense run;
 and keeps the current estimate of every object. Each stage ends with a `StageOutcome` whose `reason` is a
 `StageReason` value (never text to parse); a stage that cannot improve keeps what was there, with its reason.
+Every estimate carries its data time (`ObjectEstimate.stamp_ns`): the newest of the input's stamp and the
+stamps of the stored views of the object, i.e. the newest frame it was made from, so that outputs keep the
+bag's (the sensor's) time.
 """
 from __future__ import annotations
 
@@ -41,6 +44,7 @@ class ObjectInput:
     box: Box
     code: np.ndarray         # (C,) fused code
     num_views: int           # detections the fused code came from
+    stamp_ns: int = 0        # newest frame stamp (ns) of the box and code (0: unknown; the stored views say)
 
 
 @dataclass
@@ -64,6 +68,7 @@ class StageOutcome:
     detail: str = ''
     seconds: float = 0.0
     published: bool = True           # the estimate changed (a listener should publish the map)
+    energies: dict[str, float] = field(default_factory=dict)   # sparse/dense: total energy 'initial', 'final'
 
 
 @dataclass
@@ -116,7 +121,8 @@ class ObjectReconstructor:
             if on_stage is not None:
                 on_stage(stage)
 
-        fused = self._fused(obj)
+        stamp = max(int(obj.stamp_ns), views.newest_stamp(obj.object_id))
+        fused = self._fused(obj, stamp)
         if fused is None:
             outcome.error = 'decoded shape has no surface (code far from the prior?)'
             return outcome
@@ -129,18 +135,18 @@ class ObjectReconstructor:
         if not cfg.sparse_enabled:
             return outcome
         floor = support.scene_floor(scene.tracks, scene.slam_points)
-        sparse_stage, result = self._sparse(obj, fused, views, scene, floor)
+        sparse_stage, result = self._sparse(obj, fused, views, scene, floor, stamp)
         emit(sparse_stage)
         if result is None or not cfg.dense_on:
             return outcome
         if not self.dense_due(obj.object_id, obj.num_views, others_waiting):
             outcome.dense_deferred = True
             return outcome
-        emit(self._dense(obj, sparse_stage.estimate, result, views, scene, floor, should_stop))
+        emit(self._dense(obj, sparse_stage.estimate, result, views, scene, floor, should_stop, stamp))
         return outcome
 
     # ------------------------------------------------------------ stages
-    def _fused(self, obj: ObjectInput) -> ObjectEstimate | None:
+    def _fused(self, obj: ObjectInput, stamp: int) -> ObjectEstimate | None:
         start = time.perf_counter()
         cached = self.mesh_cache.get(obj.object_id)
         tol = self.config.code_change_tolerance
@@ -152,13 +158,13 @@ class ObjectReconstructor:
         mesh = self.mesh_cache[obj.object_id][1]
         known = category_by_id(obj.category)
         estimate = fused_estimate(obj.object_id, known.name if known else obj.class_name, obj.category, obj.code,
-                                  obj.num_views, mesh, obj.box)
+                                  obj.num_views, mesh, obj.box, stamp)
         estimate.timings['fused_s'] = time.perf_counter() - start
         estimate.stage_reason = StageReason.IN_PROGRESS if self.config.sparse_enabled else StageReason.SPARSE_DISABLED
         return estimate
 
-    def _sparse(self, obj: ObjectInput, fused: ObjectEstimate, views: ViewMemory, scene: Scene, floor: float | None
-                ) -> tuple[StageOutcome, SparseResult | None]:
+    def _sparse(self, obj: ObjectInput, fused: ObjectEstimate, views: ViewMemory, scene: Scene, floor: float | None,
+                stamp: int) -> tuple[StageOutcome, SparseResult | None]:
         """The sparse stage; on failure the fused result stays (replacing an older refinement), with the reason."""
         cfg = self.config
         oid = obj.object_id
@@ -187,14 +193,15 @@ class ObjectReconstructor:
         reason = StageReason.IN_PROGRESS if cfg.dense_on else StageReason.DENSE_DISABLED
         estimate = ObjectEstimate(oid, fused.class_name, fused.category, result.code, result.T_world_object,
                                   result.scale, world_box(mesh, result.T_world_object, result.yaw), fused.num_views,
-                                  'sparse', mesh_world, dict(fused.timings, sparse_s=seconds), reason)
+                                  'sparse', mesh_world, dict(fused.timings, sparse_s=seconds), reason, stamp)
         self.estimates[oid] = estimate
         e0, e1 = result.initial_energies.get('total', np.nan), result.energies.get('total', np.nan)
         detail = f'{result.views} views, {result.iterations} it, E {e0:.3f}->{e1:.3f}, {result.seconds:.2f}s'
-        return StageOutcome(oid, 'sparse', reason, estimate, detail, seconds), result
+        return StageOutcome(oid, 'sparse', reason, estimate, detail, seconds,
+                            energies=_energies(result.initial_energies, result.energies)), result
 
     def _dense(self, obj: ObjectInput, sparse: ObjectEstimate, sparse_result: SparseResult, views: ViewMemory,
-               scene: Scene, floor: float | None, should_stop: Callable[[], bool] | None) -> StageOutcome:
+               scene: Scene, floor: float | None, should_stop: Callable[[], bool] | None, stamp: int) -> StageOutcome:
         """The dense stage after a successful sparse stage: the dense estimate, or the sparse one with the reason."""
         oid = obj.object_id
         self.dense_views_used[oid] = obj.num_views
@@ -211,20 +218,27 @@ class ObjectReconstructor:
                   f'({result.seconds_per_iteration:.2f}s/it): {result.reason}')
         mesh = self.prior.mesh(result.code, resolution=self.config.mesh_resolution) if result.improved else None
         reason = dense_reason(result, has_surface=mesh is not None and len(mesh.faces) > 0)
+        energies = _energies(result.initial_energies, result.energies)
         if mesh is None or len(mesh.faces) == 0:
             if result.improved:
                 detail += '; dense code decodes to no surface, sparse result kept'
             if self.estimates.get(oid) is sparse:
                 sparse.stage_reason = reason
                 sparse.timings['dense_s'] = seconds
-            return StageOutcome(oid, 'dense', reason, self.estimates.get(oid), detail, seconds)
+            return StageOutcome(oid, 'dense', reason, self.estimates.get(oid), detail, seconds, energies=energies)
         mesh_world = mesh.copy()
         mesh_world.apply_transform(result.T_world_object)
         estimate = ObjectEstimate(oid, sparse.class_name, sparse.category, result.code, result.T_world_object,
                                   result.scale, world_box(mesh, result.T_world_object, result.yaw), sparse.num_views,
-                                  'dense', mesh_world, dict(sparse.timings, dense_s=seconds), reason)
+                                  'dense', mesh_world, dict(sparse.timings, dense_s=seconds), reason, stamp)
         self.estimates[oid] = estimate
-        return StageOutcome(oid, 'dense', reason, estimate, detail, seconds)
+        return StageOutcome(oid, 'dense', reason, estimate, detail, seconds, energies=energies)
+
+
+def _energies(initial: dict[str, float], final: dict[str, float]) -> dict[str, float]:
+    """The total energy before and after a stage's optimisation ('initial', 'final'; finite values only)."""
+    out = {'initial': initial.get('total', np.nan), 'final': final.get('total', np.nan)}
+    return {k: float(v) for k, v in out.items() if v is not None and np.isfinite(v)}
 
 
 def dense_reason(result: DenseResult, has_surface: bool) -> StageReason:

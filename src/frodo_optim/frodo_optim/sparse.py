@@ -596,6 +596,10 @@ class ViewStore:
         pruning rejected (cut by the border, overlapping another object: the silhouette terms allow for both)
         fill up to fill_to, spread evenly over the sequence. With 35 keyframes a table never seen whole keeps
         only the 3 views the association guarantees it, of 13-20 it was detected in."""
+        return [self.views[k] for k in self.keys_of(object_id, fill_to)]
+
+    def keys_of(self, object_id: int, fill_to: int = 0) -> list[tuple[int, int]]:
+        """The (stamp_ns, label) keys of the views `views_of` returns, in the same order."""
         keys = sorted(self.views)
         kept = [k for k in keys if self.owner.get(k) == (object_id, True)]
         pruned = [k for k in keys if self.owner.get(k) == (object_id, False)]
@@ -603,7 +607,7 @@ class ViewStore:
         if missing > 0 and pruned:
             pick = np.unique(np.linspace(0, len(pruned) - 1, min(missing, len(pruned))).round().astype(int))
             kept = sorted(kept + [pruned[i] for i in pick])
-        return [self.views[k] for k in kept]
+        return kept
 
     def _thin(self, object_id: int) -> None:
         if object_id < 0:

@@ -67,6 +67,13 @@ class ViewMemory:
         """The object's dense-stage views, chosen like `sparse_views`."""
         return self.dense.views_of(object_id, self.config.fill_views)
 
+    def newest_stamp(self, object_id: int) -> int:
+        """Stamp (ns) of the newest frame among the object's views that `sparse_views` and `dense_views` return;
+        0 when it has none. The data time of an estimate made from them."""
+        keys = (self.sparse.keys_of(object_id, self.config.fill_views)
+                + self.dense.keys_of(object_id, self.config.fill_views))
+        return max((k[0] for k in keys), default=0)
+
     def count(self, object_id: int) -> int:
         """Sparse views stored for the object (kept ones only)."""
         return len(self.sparse.views_of(object_id))

@@ -8,6 +8,9 @@ from frodo_optim.sparse import pose_matrix
 from frodo_shape.prior import ShapePrior
 
 W, H = 160, 120
+# Frame stamps in a recorded bag's time (2023-11-14, like bags/demo_walk.mcap), far from the wall clock: the
+# node tests check that outputs keep the data's time.
+BAG_EPOCH_NS = 1_700_000_000_000_000_000
 
 
 @pytest.fixture(scope='module')
@@ -37,5 +40,5 @@ def two_chairs():
         a = -np.pi / 2 + (k - 2.5) * 0.25
         Twc = look_at([3.0 * np.cos(a), 3.0 * np.sin(a), 1.2], [0.0, 0.0, 0.4])
         out = renderer.render(K, Twc, W, H, shadows=False)
-        frames.append((1_000_000_000 + 100_000_000 * k, out.rgb, out.labels.astype(np.uint16), Twc))
+        frames.append((BAG_EPOCH_NS + 100_000_000 * k, out.rgb, out.labels.astype(np.uint16), Twc))
     return K, frames, boxes, codes

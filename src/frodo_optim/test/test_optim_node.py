@@ -1,6 +1,9 @@
 """optim_node in a real rclpy graph: the optimiser is asynchronous (callbacks are served while an object's dense
-stage runs), `/diagnostics` counts pending objects exactly, every stage is published as it completes, and the
-final object records say at which stage each object ended and why."""
+stage runs), `/diagnostics` counts pending objects exactly, every stage is published as it completes, the
+final object records say at which stage each object ended and why, and every output is stamped with the time
+of the frames it came from (the bag's 2023 stamps), not with the node clock."""
+import time
+
 import numpy as np
 import rclpy
 import torch
@@ -42,6 +45,9 @@ def test_optimiser_serves_callbacks_while_optimising_and_reports_stages(two_chai
             executor.add_node(node)
         states, diags = [], []
         probe.create_subscription(PointCloud2, OBJECT_STATES, states.append, topics.LATCHED_QOS)
+        objects, boxes_out = [], []
+        probe.create_subscription(MarkerArray, topics.OBJECTS, objects.append, topics.LATCHED_QOS)
+        probe.create_subscription(MarkerArray, topics.BOXES, boxes_out.append, topics.LATCHED_QOS)
         probe.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, diags.append, 50)
         pubs = {name: probe.create_publisher(t, topic, qos) for name, t, topic, qos in (
             ('image', Image, topics.IMAGE, topics.FRAME_QOS), ('det', Image, topics.DETECTIONS, topics.FRAME_QOS),
@@ -102,6 +108,15 @@ def test_optimiser_serves_callbacks_while_optimising_and_reports_stages(two_chai
         seen = [STAGES[s] for t in map(conv.cloud_to_table, states) for s in t['stage'][t['object_id'] == 2]]
         assert seen.index('fused') < seen.index('sparse')        # published stage by stage
         assert STAGE_REASONS.index('in progress') == 0
+        # Stamps: data time. The tracks and codes carry the first frame's stamp, the views all six frames': every
+        # object estimate is stamped with the newest frame it used, the table with the newest frame received.
+        newest = frames[-1][0]
+        assert objects and boxes_out
+        for msg in objects + boxes_out:
+            assert {conv.stamp_to_ns(m.header.stamp) for m in msg.markers} == {newest}, \
+                [conv.stamp_to_ns(m.header.stamp) for m in msg.markers]
+        assert {conv.stamp_to_ns(m.header.stamp) for m in states} == {newest}
+        assert abs(newest - time.time_ns()) > 365 * 86400 * 10**9      # the bag's 2023 stamps, not now()
     finally:
         executor.shutdown()
         rclpy.shutdown()

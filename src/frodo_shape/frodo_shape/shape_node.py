@@ -2,8 +2,9 @@
 each object (paper Sec. 4.2: single-view shape code inference and multi-view code fusion).
 
 In:  /camera/color/image_raw, /frodo/detections (16UC1), /frodo/associations (table).
-Out: /frodo/codes (per-frame table: object_id, label, code[64]),
-     /frodo/object_codes (latched table: object_id, category, num_views, code[64]).
+Out: /frodo/codes (per-frame table: object_id, label, code[64]; the frame's stamp),
+     /frodo/object_codes (latched table: object_id, category, num_views, code[64]; stamped with the newest
+     frame stamp encoded so far: data time, never the node clock).
 """
 from __future__ import annotations
 
@@ -24,6 +25,7 @@ class ShapeNode(FrodoNode):
         self.encoder = CodeEncoder(ShapePrior.load(self.params['prior'], device=self.params['device']), self.params)
         self.store = self.encoder.store   # codes and their objects, bounded
         self.cache = FrameCache(['image', 'detections', 'associations'], self.params['frame_cache_size'])
+        self.newest_stamp = 0   # newest frame stamp encoded (a re-send of an older frame does not move it back)
         self.codes_pub = self.create_publisher(PointCloud2, topics.CODES, topics.FRAME_QOS)
         self.objects_pub = self.create_publisher(PointCloud2, topics.OBJECT_CODES, topics.LATCHED_QOS)
         self.create_subscription(Image, self.params['image_topic'],
@@ -66,12 +68,12 @@ class ShapeNode(FrodoNode):
         frame_id = frame.parts['associations'].header.frame_id
         if len(codes):
             self.codes_pub.publish(conv.table_to_cloud(codes, stamp, frame_id))
+        self.newest_stamp = max(self.newest_stamp, stamp)
         self._publish_objects(frame_id)
 
     def _publish_objects(self, frame_id: str) -> None:
         fused = self.encoder.fused_codes()
-        now = self.get_clock().now().nanoseconds
-        self.objects_pub.publish(conv.table_to_cloud(fused, now, frame_id))
+        self.objects_pub.publish(conv.table_to_cloud(fused, self.newest_stamp, frame_id))
         self.count('object_codes_published')
 
     def diagnostic_values(self) -> dict:
