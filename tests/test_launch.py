@@ -10,11 +10,13 @@ import time
 
 import psutil
 import pytest
+from diagnostic_msgs.msg import DiagnosticArray
 
 from frodo_bringup.graph import NODES, GraphError, select_nodes, share_file
 from frodo_bringup.launcher import Launcher
 from frodo_bringup.session import RosSession
 from frodo_bringup.testing import stub, wait_until
+from frodo_common import topics
 
 STUB_ARGS = ['--nodes', 'alpha,beta', '--add-node', 'alpha=frodo_bringup.stub_node',
              '--add-node', 'beta=frodo_bringup.stub_node']
@@ -112,10 +114,13 @@ def test_node_ignoring_sigint_gets_sigterm_after_the_timeout(tmp_path, probe):
     params = tmp_path / 'stubborn.yaml'
     params.write_text('alpha:\n  ros__parameters:\n    ignore_sigint: true\n')
     output = io.StringIO()
+    reporters = set()
+    probe.create_subscription(DiagnosticArray, topics.DIAGNOSTICS,
+                              lambda msg: reporters.update(s.name for s in msg.status), 10)
     launcher = Launcher([stub('alpha')], [params], sigint_timeout=1.0, output=output)
     launcher.start()
-    assert wait_until(lambda: 'alpha' in probe.get_node_names(), 20)
-    time.sleep(0.5)  # the handler is installed at the end of the node's constructor
+    # The stub ignores SIGINT from the end of its constructor; diagnostics start with the first spin, after it.
+    assert wait_until(lambda: 'alpha' in reporters, 20), output.getvalue()
     started = time.monotonic()
     assert launcher.shutdown(timeout=10)
     assert 1.0 <= time.monotonic() - started < 5
