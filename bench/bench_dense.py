@@ -1,4 +1,4 @@
-"""Dense stage (paper Sec. 4.3) benchmarks: speed, and the per-stage / per-energy accuracy tables.
+"""Dense stage (paper Sec. 5.3) benchmarks: speed, and the per-stage / per-energy accuracy tables.
 
     .venv/bin/python bench/bench_dense.py timing [--views 35] [--iterations 10] [--threads 2]
     .venv/bin/python bench/bench_dense.py stages BAG.mcap [BAG ...] [--ablation] [--json OUT.json]

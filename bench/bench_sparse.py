@@ -1,4 +1,4 @@
-"""Time the sparse stage (paper Sec. 4.3) of one object: yaw search and per-iteration cost over N views.
+"""Time the sparse stage (paper Sec. 5.3) of one object: yaw search and per-iteration cost over N views.
 
     .venv/bin/python bench/bench_sparse.py [--views 35] [--iterations 30] [--threads 1] [--no-placement]
 

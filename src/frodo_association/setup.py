@@ -16,7 +16,7 @@ setup(
     zip_safe=False,
     maintainer='FroDO maintainers',
     maintainer_email='frodo@example.org',
-    description='Association node: ray-segment DP-means clustering of detections into objects, 3D boxes and detection pruning (paper Sec. 4.1, supplement).',
+    description='Association node: ray-segment DP-means clustering of detections into objects, 3D boxes and detection pruning (paper Sec. 5.1, supplement).',
     license='Apache-2.0',
     entry_points={
         'console_scripts': [

@@ -16,7 +16,7 @@ setup(
     zip_safe=False,
     maintainer='FroDO maintainers',
     maintainer_email='frodo@example.org',
-    description='Detection node: per-frame instance masks from /camera/instances or torchvision Mask R-CNN (paper Sec. 4.1).',
+    description='Detection node: per-frame instance masks from /camera/instances or torchvision Mask R-CNN (paper Sec. 5.1).',
     license='Apache-2.0',
     entry_points={
         'console_scripts': [

@@ -16,7 +16,7 @@ setup(
     zip_safe=False,
     maintainer='FroDO maintainers',
     maintainer_email='frodo@example.org',
-    description='Optimiser node: per-object pose and shape refinement (paper Sec. 4.3) and mesh publication.',
+    description='Optimiser node: per-object pose and shape refinement (paper Sec. 5.3) and mesh publication.',
     license='Apache-2.0',
     entry_points={
         'console_scripts': [

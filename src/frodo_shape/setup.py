@@ -19,7 +19,7 @@ setup(
     zip_safe=False,
     maintainer='FroDO maintainers',
     maintainer_email='frodo@example.org',
-    description='Joint point/SDF shape embedding, image encoder, code fusion, training pipeline and shipped priors (paper Sec. 3, 4.2).',
+    description='Joint point/SDF shape embedding, image encoder, code fusion, training pipeline and shipped priors (paper Sec. 4, 4.2).',
     license='Apache-2.0',
     entry_points={
         'console_scripts': [

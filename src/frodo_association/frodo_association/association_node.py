@@ -1,4 +1,4 @@
-"""Association node (paper Sec. 4.1; supplement "DP-mean based Line Segment Clustering", "Detection Pruning"):
+"""Association node (paper Sec. 5.1; supplement "DP-mean based Line Segment Clustering", "Detection Pruning"):
 per-frame detections -> object ids, 3D boxes and kept flags.
 
 In:  /frodo/detections (16UC1 instance image), /camera/color/camera_info, /camera/pose (matched by stamp);

@@ -1,4 +1,4 @@
-"""Public API of the association stage (paper Sec. 4.1 and supplement "DP-mean based Line Segment Clustering",
+"""Public API of the association stage (paper Sec. 5.1 and supplement "DP-mean based Line Segment Clustering",
 Algorithm 1; "Detection Pruning"), numpy/scipy, no ROS. The code lives in one module per concern:
 
 - `config`: `AssociationConfig`, `CONFIG_DOC`, `ASSOCIATION_DTYPE`;

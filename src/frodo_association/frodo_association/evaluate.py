@@ -1,4 +1,4 @@
-"""Evaluation of the association stage (paper Sec. 4.1, supplement "DP-mean based Line Segment Clustering" and
+"""Evaluation of the association stage (paper Sec. 5.1, supplement "DP-mean based Line Segment Clustering" and
 "Detection Pruning") on scenes with ground truth: association purity and completeness, 3D box errors and the
 detection pruning ablation.
 

@@ -1,4 +1,4 @@
-"""One frame through the association (paper Sec. 4.1), without ROS: detections of an instance image, their
+"""One frame through the association (paper Sec. 5.1), without ROS: detections of an instance image, their
 visible-surface depths from registered depth or landmarks (`evidence`), then `Associator.add_frame` and one box
 refinement step. The association node and the offline pipeline both call `FrameAssociator.add`."""
 from __future__ import annotations

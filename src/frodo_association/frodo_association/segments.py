@@ -1,4 +1,4 @@
-"""Ray segments and DP-means centres (paper Sec. 4.1, supplement "DP-mean based Line Segment Clustering",
+"""Ray segments and DP-means centres (paper Sec. 5.1, supplement "DP-mean based Line Segment Clustering",
 Algorithm 1), numpy/scipy, no ROS.
 
 Observation. The ray through a detection's 2D box centre points at the object centre. An object of metric

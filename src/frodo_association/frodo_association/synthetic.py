@@ -1,6 +1,6 @@
 """Box world: upright boxes on a floor seen by a walking camera, rendered as contract instance images
 (numpy/OpenCV, no ROS, no mesh renderer); `make_furniture_scene` does the same walk with procedural furniture
-meshes rendered by `frodo_datasets.render`. Used to test and evaluate the association stage (paper Sec. 4.1)
+meshes rendered by `frodo_datasets.render`. Used to test and evaluate the association stage (paper Sec. 5.1)
 with exact ground truth: which object each instance is and how much of it is visible.
 
 A box is convex, so its silhouette is the convex hull of its projected corners; instances are painted far to

@@ -1,4 +1,4 @@
-"""Incremental association (paper Sec. 4.1): `Associator` turns per-frame detections into objects with stable
+"""Incremental association (paper Sec. 5.1): `Associator` turns per-frame detections into objects with stable
 ids, confirmation ("publishing"), 3D boxes and pruning flags (numpy/scipy, no ROS).
 
 DP-means over ray segments (`frodo_association.segments`) runs incrementally: each frame's segments are

@@ -1,4 +1,4 @@
-"""Association core (paper Sec. 4.1, supplement Algorithm 1 and "Detection Pruning"): segments from boxes,
+"""Association core (paper Sec. 5.1, supplement Algorithm 1 and "Detection Pruning"): segments from boxes,
 DP-means over segments with stable ids, merges and same-frame exclusivity, box fitting and pruning."""
 import numpy as np
 import pytest

@@ -2,13 +2,13 @@
 
 Sections (each a function returning plain data; a section that cannot run says why instead):
 - `machine`: CPU, cores, load average, torch threads, device, versions, git commit.
-- `decoder`: shape prior decoders (paper Sec. 3): SDF queries per second, point-decoder shapes per second,
+- `decoder`: shape prior decoders (paper Sec. 4): SDF queries per second, point-decoder shapes per second,
   marching-cubes mesh time; `bag_read`: reading + decoding the demo bag (messages and MB per second).
-- `sparse` / `dense`: optimiser seconds per iteration against the number of views (paper Sec. 4.3, supp.
+- `sparse` / `dense`: optimiser seconds per iteration against the number of views (paper Sec. 5.3, supp.
   Table "Speed comparison": sparse 0.07 s, dense 4.96 s per iteration), from `bench/bench_sparse.py` and
   `bench/bench_dense.py` (each optional: skipped with a note when absent).
 - `association`: per-frame latency against the objects in view, association (`add_frame`) and box
-  refinement (`refine_boxes`) separately and together (paper Sec. 4.1).
+  refinement (`refine_boxes`) separately and together (paper Sec. 5.1).
 - `end_to_end`: `frodo run` of the demo bag: wall time, per-stage figures from the nodes' diagnostics
   and objects.json, and the intervals between each node's `/diagnostics` reports (contract: at least
   1 Hz), from their publish stamps and, separately, their arrival at a probe.

@@ -102,7 +102,7 @@ def score_outputs(out: Path, bag: Path, command: str) -> bool:
 
 
 def stage_table(out: Path, report) -> str:
-    """Optimiser stage each object ended at (fused -> sparse -> dense, paper Sec. 4.3), why, and its F1."""
+    """Optimiser stage each object ended at (fused -> sparse -> dense, paper Sec. 5.3), why, and its F1."""
     try:
         records = json.loads((out / OBJECTS_FILE).read_text()).get('objects', [])
     except (OSError, ValueError):

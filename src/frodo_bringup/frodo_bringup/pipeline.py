@@ -1,6 +1,6 @@
 """The whole method on a recorded bag, synchronous and without ROS processes (`frodo reconstruct`).
 
-The same layers the nodes adapt, called in order (paper Sec. 4): detection filter or Mask R-CNN
+The same layers the nodes adapt, called in order (paper Sec. 5): detection filter or Mask R-CNN
 (`frodo_detection.config`) -> association with surface evidence (`frodo_association.frames.FrameAssociator`) ->
 encoder + code fusion (`frodo_shape.encoding.CodeEncoder`) -> per-object fused -> sparse -> dense
 (`frodo_optim.reconstructor.ObjectReconstructor`). Offline the whole bag is known before shape inference, so:

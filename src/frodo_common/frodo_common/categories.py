@@ -12,7 +12,7 @@ class Category:
     name: the marker namespace used on `/frodo/objects` and `/frodo/boxes`.
     size_range: (min, max) plausible largest metric extent of an object of this class in metres.
         The association stage uses it to cut the ray through a box centre to a 3D segment
-        (paper Sec. 4.1: "knowledge of the object class sets reasonable bounds on the object scale").
+        (paper Sec. 5.1: "knowledge of the object class sets reasonable bounds on the object scale").
     height_range: (min, max) plausible metric height in metres (floor to top). The optimiser's class
         height prior (frodo_optim.support, beyond the paper) keeps reconstructions inside it.
     colour: (r, g, b) in [0, 1], the class's colour wherever objects are drawn by class (the optimiser's

@@ -17,7 +17,7 @@ CODES_DTYPE = np.dtype([('object_id', '<i4'), ('label', '<u2'), ('code', '<f4', 
 
 OBJECT_CODES_DTYPE = np.dtype([('object_id', '<i4'), ('category', '<u2'), ('num_views', '<u4'),
                                ('code', '<f4', (CODE_DIM,))])
-"""/frodo/object_codes: per object its fused code (Sec. 4.2), COCO category and detections fused."""
+"""/frodo/object_codes: per object its fused code (Sec. 5.2), COCO category and detections fused."""
 
 STATES_DTYPE = np.dtype([('object_id', '<i4'), ('category', '<u2'), ('stage', 'u1'), ('num_views', '<u4'),
                          ('scale', '<f8'), ('pose', '<f8', (16,)), ('box', '<f8', (7,)),

@@ -1,4 +1,4 @@
-"""Detection parameters (paper Sec. 4.1) without ROS: the node's parameter specs and the filter / detector they
+"""Detection parameters (paper Sec. 5.1) without ROS: the node's parameter specs and the filter / detector they
 configure, shared by `detection_node` and the offline pipeline."""
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""2D object detection for FroDO (paper Sec. 4.1, "Object Detection and Data Association"): instance
+"""2D object detection for FroDO (paper Sec. 5.1, "Object Detection and Data Association"): instance
 image filtering and the torchvision Mask R-CNN backend (numpy/torch, no ROS).
 
 Instance images use the contract's `/camera/instances` encoding (CONTRACT.md): a `uint16` (H, W) array

@@ -1,4 +1,4 @@
-"""Detection node (paper Sec. 4.1): per-frame instance masks for the association stage.
+"""Detection node (paper Sec. 5.1): per-frame instance masks for the association stage.
 
 In:  /camera/color/image_raw (rgb8/bgr8), /camera/instances (16UC1, backend 'external' only).
 Out: /frodo/detections (16UC1, the image's stamp and frame id; all zero when nothing was detected).

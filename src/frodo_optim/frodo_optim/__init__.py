@@ -1,1 +1,1 @@
-"""Optimiser node: per-object pose and shape refinement (paper Sec. 4.3) and mesh publication."""
+"""Optimiser node: per-object pose and shape refinement (paper Sec. 5.3) and mesh publication."""

@@ -17,7 +17,7 @@ from frodo_shape.prior import DEFAULT_PRIOR
 
 @dataclass(frozen=True)
 class OptimConfig:
-    """What the object reconstructor does per object (paper Sec. 4.3: fused -> sparse -> dense)."""
+    """What the object reconstructor does per object (paper Sec. 5.3: fused -> sparse -> dense)."""
 
     prior: str = DEFAULT_PRIOR
     device: str = 'auto'
@@ -51,7 +51,7 @@ _TABLE: tuple[tuple[str, tuple[str, ...], str], ...] = (
     ('code_change_tolerance', ('code_change_tolerance',),
      'Re-decode the mesh only when the fused code moved by more than this (relative L2); box updates alone just '
      're-place the cached mesh.'),
-    ('sparse_enabled', ('sparse_enabled',), 'Run the sparse stage (Sec. 4.3: yaw search + silhouette/SLAM-point '
+    ('sparse_enabled', ('sparse_enabled',), 'Run the sparse stage (Sec. 5.3: yaw search + silhouette/SLAM-point '
      'optimisation) after the fused stage; false publishes the fused placement only.'),
     ('sparse_iterations', ('sparse.iterations',), 'Adam iterations of the sparse stage per object and pass.'),
     ('sparse_views', ('sparse.max_views',), 'Views (spread evenly over the kept ones) used by the sparse stage.'),
@@ -65,7 +65,7 @@ _TABLE: tuple[tuple[str, tuple[str, ...], str], ...] = (
     ('sparse_w_code', ('sparse.w_code',), 'Weight of the code regulariser Er (squared code z-score w.r.t. training codes).'),
     ('sparse_optimise_code', ('sparse.optimise_code',), 'Optimise the shape code too (false: pose only).'),
     ('sparse_lr_code', ('sparse.lr_code',), 'Adam step size of the shape code in the sparse stage.'),
-    ('sparse_w_photometric', ('sparse.w_photometric',), 'Weight of the sparse photometric energy Ep (Eq. 5, '
+    ('sparse_w_photometric', ('sparse.w_photometric',), 'Weight of the sparse photometric energy Ep (Eq. 4, '
      'visibility-aware; needs dense_enabled for the colour crops); 0 disables.'),
     ('sparse_placement_search', ('sparse.placement_search',), 'Also start the sparse stage from placement hypotheses '
      '(placement.py: ray-crossing centres, silhouette scales) for a badly wrong association box; a hypothesis replaces '
@@ -79,7 +79,7 @@ _TABLE: tuple[tuple[str, tuple[str, ...], str], ...] = (
      'support.py); 0 disables.'),
     ('support_w_height', ('sparse.w_height', 'dense.w_height'), 'Weight of the class height prior E_size in the '
      'sparse and dense stages (beyond the paper: height inside Category.height_range; support.py); 0 disables.'),
-    ('dense_enabled', ('dense_enabled',), 'Run the dense stage (Sec. 4.3 Dense Optimization: SDF decoder, code + '
+    ('dense_enabled', ('dense_enabled',), 'Run the dense stage (Sec. 5.3 Dense Optimization: SDF decoder, code + '
      '7-DoF pose) after a successful sparse stage.'),
     ('dense_iterations', ('dense.iterations',), 'Adam iterations of the dense stage per object and pass.'),
     ('dense_starts', ('dense_starts',), "Dense stage from the sparse result and up to N - 1 end states of the sparse "
@@ -96,8 +96,8 @@ _TABLE: tuple[tuple[str, tuple[str, ...], str], ...] = (
     ('dense_sharpness', ('dense.sharpness',), 'zeta: SDF-to-logit scale of the ray-accumulated silhouette (per '
      'normalised unit).'),
     ('dense_crop_size', ('crop_size',), 'Side of the stored label/colour crop per detection (bounded memory).'),
-    ('dense_w_silhouette', ('dense.w_silhouette',), 'Weight of the dense silhouette energy (Eq. 8/9).'),
-    ('dense_w_photometric', ('dense.w_photometric',), 'Weight of the dense photometric energy (Eq. 5 on the proxy '
+    ('dense_w_silhouette', ('dense.w_silhouette',), 'Weight of the dense silhouette energy (Eq. 7/8).'),
+    ('dense_w_photometric', ('dense.w_photometric',), 'Weight of the dense photometric energy (Eq. 4 on the proxy '
      'surface).'),
     ('dense_w_geometry', ('dense.w_geometry',), 'Weight of the landmark term (|SDF| at SLAM points, truncated).'),
     ('dense_w_depth', ('dense.w_depth',), 'Weight of the registered-depth term (|SDF| at masked depth pixels), when '

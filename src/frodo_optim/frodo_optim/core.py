@@ -1,7 +1,7 @@
-"""Optimiser core (paper Sec. 4.3, "Initialization"): per-object state and the fused-stage placement.
+"""Optimiser core (paper Sec. 5.3, "Initialization"): per-object state and the fused-stage placement.
 
-The fused stage places the mesh decoded from the object's fused code (Sec. 4.2) into the world from
-its 3D box (Sec. 4.1): translation = box centre, scale = box height over the decoded shape's height
+The fused stage places the mesh decoded from the object's fused code (Sec. 5.2) into the world from
+its 3D box (Sec. 5.1): translation = box centre, scale = box height over the decoded shape's height
 (the paper scales by the box height), rotation = yaw about gravity. The box yaw is known up to the box
 symmetry; of the four candidates yaw + k*pi/2 we keep the one whose rotated shape footprint best fits
 the box footprint. Front/back (k vs k+2) cannot be told from a box: that is left to the exhaustive

@@ -1,4 +1,4 @@
-"""Dense optimisation stage (paper Sec. 4.3 "Dense Optimization", supplement "Dense Shape Code Optimization").
+"""Dense optimisation stage (paper Sec. 5.3 "Dense Optimization", supplement "Dense Shape Code Optimization").
 
 Starting from the sparse stage's code and pose, the DeepSDF branch Gd(z, x) of the joint decoder is
 optimised together with a 7-DoF pose x_world = s * R * x_norm + t (R = exp([w]) R0, any rotation, as the paper;
@@ -9,7 +9,7 @@ Per iteration:
    zero level set), evaluated without gradients, and a proxy mesh by marching cubes; its vertices (a fixed
    number, `surface_points`) are the surface points of the photometric term;
 2. the energy  E = ws Es + wp Ep + wg Eg + wd Ed + wr Er  with
-   - Es, dense silhouette (paper Eq. 8/9): per pixel the foreground probability accumulated along its ray
+   - Es, dense silhouette (paper Eq. 7/8): per pixel the foreground probability accumulated along its ray
      from the SDF samples taken as logits, H = 1 - prod_i sig(zeta * f(x_i)), step `ray_step` (paper r/50),
      compared with the observed mask by the pixel-wise likelihood -log(H Pf + (1 - H)(1 - Pf)). Pixels come
      from a detection pyramid (levels l with r_min^2 < w h / 4^l < r_max^2, coarse to fine over the
@@ -17,7 +17,7 @@ Per iteration:
      per view and level are drawn once (seeded). Unknown pixels (other detections, outside the image) are
      left out. The SDF along rays is read from the volume (trilinear), so the decoder runs once per grid
      point, not once per ray sample (the paper's reason for the proxy volume: cost independent of views);
-   - Ep, photometric (paper Eq. 5) on the proxy surface points, `photometric.photometric_energy`, with
+   - Ep, photometric (paper Eq. 4) on the proxy surface points, `photometric.photometric_energy`, with
      back-face and z-buffer visibility;
    - Eg, geometric: SLAM landmarks of the object (`optim_node`: the sparse stage's visual-hull set,
      `SparseResult.landmarks`), |SDF| at the landmark in metres, truncated;
@@ -227,7 +227,7 @@ def make_rays(views: list[DenseView], cfg: DenseConfig, phases: int, gen: torch.
 
 def dense_silhouette(volume: torch.Tensor, R: torch.Tensor, t: torch.Tensor, s: torch.Tensor, rays: Rays,
                      step: float, sharpness: float, confidence: float) -> torch.Tensor:
-    """Es (paper Eq. 8/9): mean over views of -log(H Pf + (1 - H)(1 - Pf)) over each view's known pixels.
+    """Es (paper Eq. 7/8): mean over views of -log(H Pf + (1 - H)(1 - Pf)) over each view's known pixels.
 
     volume (1, 1, R, R, R): SDF grid indexed [z, y, x] over [-1, 1]^3 (grid_sample layout); R (3, 3), t (3,),
     s (): the object pose. H = 1 - prod sig(zeta f) over samples every `step` along the ray inside the cube.
@@ -332,7 +332,7 @@ def refine_dense_starts(prior, code, T_world_object: np.ndarray, views: list[Den
 def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView], slam_points: np.ndarray | None = None,
                  box=None, config: DenseConfig | None = None, should_stop=None, floor_height: float | None = None,
                  height_range: tuple[float, float] | None = None) -> DenseResult:
-    """Dense code + 7-DoF pose refinement of one object from its sparse estimate (paper Sec. 4.3).
+    """Dense code + 7-DoF pose refinement of one object from its sparse estimate (paper Sec. 5.3).
 
     prior: `ShapePrior` (decoder.sdf, sdf_numpy, training_codes); code (C,), T_world_object (4, 4) similarity:
     the sparse result; views: `DenseView`s (at most config.max_views, spread evenly); slam_points (N, 3) world

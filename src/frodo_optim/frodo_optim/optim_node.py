@@ -1,5 +1,5 @@
 """Optimiser node: turns tracks (3D boxes) and fused shape codes into placed object meshes, asynchronously
-(paper Sec. 4.3). Stage 'fused': decode + box-fit placement (frodo_optim.core); stage 'sparse': yaw search
+(paper Sec. 5.3). Stage 'fused': decode + box-fit placement (frodo_optim.core); stage 'sparse': yaw search
 and joint code/pose optimisation against the object's masks and SLAM points (frodo_optim.sparse), published
 after the fused result of the same pass; stage 'dense': code + 7-DoF pose on the SDF decoder against masks,
 colours, landmarks and (optional) depth (frodo_optim.dense), published after the sparse result.

@@ -1,4 +1,4 @@
-"""Photometric consistency Ep (paper Sec. 4.3, Eq. 5) and the per-view image data it reads; torch + numpy only.
+"""Photometric consistency Ep (paper Sec. 5.3, Eq. 4) and the per-view image data it reads; torch + numpy only.
 
     Ep = 1 / (N |X|) sum_i sum_x || I_R(pi(T_cw^R x)) - I_S_i(pi(T_cw^S_i x)) ||_huber
 
@@ -205,7 +205,7 @@ def visible(batch: ViewBatch, uv: torch.Tensor, depth: torch.Tensor, tolerance: 
 def photometric_energy(batch: ViewBatch, points_world: torch.Tensor, neighbours: int = 2, delta: float = 0.1,
                        tolerance: torch.Tensor | float = 0.03, normals_world: torch.Tensor | None = None,
                        visibility: torch.Tensor | None = None) -> torch.Tensor:
-    """Ep (paper Eq. 5) of world points (P, 3) over all (reference, next `neighbours` views) pairs.
+    """Ep (paper Eq. 4) of world points (P, 3) over all (reference, next `neighbours` views) pairs.
 
     Huber (delta on [0, 1] colour) of the colour difference, per channel, averaged over pairs x points that
     are visible in both views. 0 when no colour or no pair has a common visible point. `visibility` (V, P)

@@ -1,6 +1,6 @@
-"""Placement hypotheses for the sparse stage: survive a wrong initial box (paper Sec. 4.3 "Initialization").
+"""Placement hypotheses for the sparse stage: survive a wrong initial box (paper Sec. 5.3 "Initialization").
 
-The paper initialises translation and scale from the object's 3D box (Sec. 4.1) and searches only the
+The paper initialises translation and scale from the object's 3D box (Sec. 5.1) and searches only the
 rotation. On real captures that box can be 10-40 cm off and a factor 2 wrong in scale; the local
 optimisation then cannot recover (the 10 cm truncation of Eg misses the landmarks, and the silhouettes
 pull the shape into the part of the object it already covers). This module proposes placements from the

@@ -1,4 +1,4 @@
-"""Per-object reconstruction, coarse to fine (paper Sec. 4.3), without ROS: the stage policy that the optimiser
+"""Per-object reconstruction, coarse to fine (paper Sec. 5.3), without ROS: the stage policy that the optimiser
 node schedules and the offline pipeline (`frodo reconstruct`) runs synchronously.
 
 For one object (its association box, fused code and stored views) `ObjectReconstructor.reconstruct` runs
@@ -36,7 +36,7 @@ Box = tuple  # (centre (3,), size (3,), yaw): the association's upright box in t
 
 @dataclass
 class ObjectInput:
-    """What the front end says of one object: its track box and fused code (Sec. 4.1-4.2)."""
+    """What the front end says of one object: its track box and fused code (Sec. 5.1-5.2)."""
 
     object_id: int
     class_name: str          # the track's class (used when `category` is no known COCO id)

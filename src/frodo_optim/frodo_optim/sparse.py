@@ -1,6 +1,6 @@
-"""Sparse optimisation stage (paper Sec. 4.3, "Initialization" and "Sparse Optimization"); torch + numpy only.
+"""Sparse optimisation stage (paper Sec. 5.3, "Initialization" and "Sparse Optimization"); torch + numpy only.
 
-Per object, the 2048 surface points Gs(z) of the prior's point decoder (paper Sec. 3, PSGN branch) are
+Per object, the 2048 surface points Gs(z) of the prior's point decoder (paper Sec. 4, PSGN branch) are
 placed by an upright similarity x_world = s * R(yaw) * x_norm + t and compared with the object's
 detections in a bounded set of views:
 
@@ -20,7 +20,7 @@ detections in a bounded set of views:
 - Er (code regulariser, paper ||z||^2 / sigma^2): mean over dimensions of ((z - mu) / sigma)^2 with mu,
   sigma the per-dimension mean and spread of the prior's training codes (the paper's zero-mean prior,
   for codes that are not centred).
-- Ep (photometric consistency, paper Eq. 5): Huber colour differences of the points between each view and
+- Ep (photometric consistency, paper Eq. 4): Huber colour differences of the points between each view and
   its next views, visible points only (`photometric.py`), when colour views are passed (weight w_photometric).
 - E_floor, E_size (beyond the paper, `support.py`): the object's lowest points on the estimated floor plane
   (when `floor_height` is given) and its metric height inside its class's range (when `height_range` is
@@ -323,7 +323,7 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
            config: SparseConfig | None = None, init_yaw: float | None = None, photometric=None,
            floor_height: float | None = None, height_range: tuple[float, float] | None = None,
            code_class: str | None = None, neighbour_boxes=()) -> SparseResult:
-    """Yaw search + joint code/pose optimisation of one object (paper Sec. 4.3).
+    """Yaw search + joint code/pose optimisation of one object (paper Sec. 5.3).
 
     prior: anything with `decode_points(codes) -> (N, 2048, 3)` torch (differentiable) and `training_codes`.
     code (C,): the fused code; box (centre, size, yaw): the association's box; views: `View`s (at most
@@ -383,7 +383,7 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
         if use_height:    # beyond the paper: metric height inside the class's range (support.py)
             terms['height'] = support.height_energy(world, height_range)
             total = total + cfg.w_height * terms['height']
-        if photometric is not None and cfg.w_photometric > 0:   # paper Eq. 5, visibility-aware (photometric.py)
+        if photometric is not None and cfg.w_photometric > 0:   # paper Eq. 4, visibility-aware (photometric.py)
             terms['photometric'] = photometric_energy(photometric, world, tolerance=0.1 * torch.exp(log_s).detach())
             total = total + cfg.w_photometric * terms['photometric']
         return total, terms

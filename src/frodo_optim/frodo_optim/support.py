@@ -1,6 +1,6 @@
 """Physical priors of the sparse and dense stages (beyond the paper; issue 9 item 4).
 
-The paper's energy (Sec. 4.3, Eq. 4) has silhouette, photometric, landmark and code terms only. Nothing in
+The paper's energy (Sec. 5.3, Eq. 3) has silhouette, photometric, landmark and code terms only. Nothing in
 it knows that chairs and tables stand on the floor or how tall furniture is, and on hand-held captures
 (close range, objects cut by the image border, few textured landmarks) that freedom is what the optimiser
 uses badly: a shape too tall for its footprint is fitted 20-30 % too large and sunk below the floor so that

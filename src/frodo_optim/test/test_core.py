@@ -1,4 +1,4 @@
-"""Fused-stage placement: a decoded shape lands in its 3D box with the box height as scale (Sec. 4.3 init)."""
+"""Fused-stage placement: a decoded shape lands in its 3D box with the box height as scale (Sec. 5.3 init)."""
 import numpy as np
 import pytest
 import trimesh

@@ -1,4 +1,4 @@
-"""Dense stage (paper Sec. 4.3 "Dense Optimization"): energies' gradients against finite differences, the
+"""Dense stage (paper Sec. 5.3 "Dense Optimization"): energies' gradients against finite differences, the
 implicit surface-point derivative dx/dz, photometric visibility, rollback, and a refinement that helps."""
 import math
 

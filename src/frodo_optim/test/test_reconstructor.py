@@ -1,4 +1,4 @@
-"""Per-object stage policy without ROS (paper Sec. 4.3, fused -> sparse -> dense): every stage ends with a typed
+"""Per-object stage policy without ROS (paper Sec. 5.3, fused -> sparse -> dense): every stage ends with a typed
 reason, a stage that cannot improve keeps what was there, and the two outcomes free-text matching got wrong
 (a dense run interrupted at shutdown; a sparse result that decodes to no surface) have reasons of their own."""
 from dataclasses import replace

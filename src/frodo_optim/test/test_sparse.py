@@ -1,4 +1,4 @@
-"""Sparse stage (paper Sec. 4.3): yaw search + silhouette optimisation recover a chair placed with the wrong yaw."""
+"""Sparse stage (paper Sec. 5.3): yaw search + silhouette optimisation recover a chair placed with the wrong yaw."""
 import math
 
 import numpy as np

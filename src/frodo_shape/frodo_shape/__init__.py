@@ -1,1 +1,1 @@
-"""Joint point/SDF shape embedding, image encoder, code fusion, training pipeline and shipped priors (paper Sec. 3, 4.2)."""
+"""Joint point/SDF shape embedding, image encoder, code fusion, training pipeline and shipped priors (paper Sec. 4, 4.2)."""

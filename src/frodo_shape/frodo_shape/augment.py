@@ -1,6 +1,6 @@
 """Capture-condition randomisation of the encoder's training crops (issue 9, item 5; beyond the paper).
 
-The paper's encoder (Sec. 4.2) is trained on renders with perturbed crop boxes. Detections of a handheld
+The paper's encoder (Sec. 5.2) is trained on renders with perturbed crop boxes. Detections of a handheld
 capture differ from such renders in ways a crop shows directly, so each training crop may also get:
 
 - truncation: the object cut by a simulated image border (pixels beyond it are zeroed, as `square_crop` pads
@@ -177,7 +177,7 @@ def degrade(x: np.ndarray, rng: np.random.Generator, aug: CropAugmentation) -> n
 def augment_crop(image: np.ndarray, mask: np.ndarray, box: np.ndarray, rng: np.random.Generator, size: int = 128,
                  margin: float = 0.1, aug: CropAugmentation | None = None):
     """A perturbed detection crop: paper-style (jittered box, resolution, mask erosion/dilation, colour and
-    noise; Sec. 4.2) plus, where `aug` enables them, the capture conditions of this module.
+    noise; Sec. 5.2) plus, where `aug` enables them, the capture conditions of this module.
 
     image (S, S, 3) uint8, mask (S, S) bool, box (4,) -> (crop (size, size, 3) uint8, mask (size, size) bool).
     """

@@ -1,4 +1,4 @@
-"""`frodo train decoder|encoder`: train a shape prior (paper Sec. 3 joint embedding, Sec. 4.2 encoder).
+"""`frodo train decoder|encoder`: train a shape prior (paper Sec. 4 joint embedding, Sec. 5.2 encoder).
 
     frodo train decoder --config furniture_decoder --out priors/mine [--resume] [--steps N]
                         [--meshes PATH --class NAME]

@@ -1,5 +1,5 @@
 """Bounded memory of the shape node: one code per associated detection, keyed (stamp ns, instance label),
-and the object each detection belongs to (paper Sec. 4.2: an object's code is fused from its detections' codes).
+and the object each detection belongs to (paper Sec. 5.2: an object's code is fused from its detections' codes).
 
 Without a bound a long run grows by one 64-D code per detection for ever, and fusing every object's codes
 each frame costs time in proportion (measured by `frodo bench --only soak`). So an object keeps at most

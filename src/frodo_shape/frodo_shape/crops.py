@@ -1,4 +1,4 @@
-"""Object crops for the image encoder (paper Sec. 4.2): square, padded crops around a detection box."""
+"""Object crops for the image encoder (paper Sec. 5.2): square, padded crops around a detection box."""
 from __future__ import annotations
 
 import cv2

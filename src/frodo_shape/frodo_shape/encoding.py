@@ -1,4 +1,4 @@
-"""Single-view code inference and multi-view code fusion (paper Sec. 4.2) without ROS: every kept, associated
+"""Single-view code inference and multi-view code fusion (paper Sec. 5.2) without ROS: every kept, associated
 detection crop is encoded once into a 64-D code; an object's code is the fusion of its detections' codes.
 `shape_node` and the offline pipeline both use `CodeEncoder`; `PARAMS` are the node's parameters."""
 from __future__ import annotations
@@ -20,7 +20,7 @@ FUSIONS = ('mean', 'vote')
 PARAMS = (
     ParamSpec('prior', DEFAULT_PRIOR, 'Shipped prior name (frodo_shape/priors/<name>) or path to a prior folder.'),
     ParamSpec('device', 'auto', "Torch device for the encoder: 'auto' (cuda if available), 'cpu' or 'cuda'."),
-    ParamSpec('fusion', 'mean', "Code fusion (Sec. 4.2): 'mean' or 'vote' (majority of 4 nearest training codes)."),
+    ParamSpec('fusion', 'mean', "Code fusion (Sec. 5.2): 'mean' or 'vote' (majority of 4 nearest training codes)."),
     ParamSpec('crop_size', 128, 'Side of the square encoder input crop in pixels.'),
     ParamSpec('crop_margin', 0.1, 'Context margin around the detection box, as a fraction of its longer side.'),
     ParamSpec('image_topic', topics.IMAGE, 'Colour image topic.'),

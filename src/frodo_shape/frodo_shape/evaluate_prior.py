@@ -1,4 +1,4 @@
-"""Measurements of a shape prior (paper Sec. 3 embedding quality, Sec. 4.2 single-view encoder, supp. speed).
+"""Measurements of a shape prior (paper Sec. 4 embedding quality, Sec. 5.2 single-view encoder, supp. speed).
 
     python -m frodo_shape.evaluate_prior --prior furniture [--heldout 10] [--views 3] [--out metrics.json]
         [--real-cad data/real/build/src [--real-cad-figure real_cad.png]]

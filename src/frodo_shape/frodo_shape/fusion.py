@@ -1,4 +1,4 @@
-"""Multi-view shape code fusion (paper Sec. 4.2, "Multi-view Shape Code Fusion").
+"""Multi-view shape code fusion (paper Sec. 5.2, "Multi-view Shape Code Fusion").
 
 (i) average: the mean of the single-view codes; (ii) majority vote: the 4 nearest training codes of every
 single-view code are pooled and the most frequent training shape wins, so the fused code is always a valid

@@ -1,4 +1,4 @@
-"""Dense SDF grids and marching cubes for the DeepSDF branch (paper Sec. 3; the proxy mesh of Sec. 4.3).
+"""Dense SDF grids and marching cubes for the DeepSDF branch (paper Sec. 4; the proxy mesh of Sec. 5.3).
 
 `sdf_grid` evaluates a coarse grid first and re-evaluates, on the fine grid, only the points whose
 interpolated coarse value is within a few coarse cells of the surface; elsewhere the trilinearly

@@ -1,4 +1,4 @@
-"""Networks of the joint shape embedding (paper Sec. 3 and supplement "Network Architecture and Training").
+"""Networks of the joint shape embedding (paper Sec. 4 and supplement "Network Architecture and Training").
 
 - `SDFDecoder` Gd(z, x): DeepSDF-style MLP on [code, xyz] with a latent skip connection at the middle layer,
   tanh output, optional weight norm. The code's contribution to the first and the skip layer is computed
@@ -7,7 +7,7 @@
   FC 512-1024-2048-2048x3 (~15 M parameters); `POINT_DECODER_VARIANTS` names smaller CPU variants.
 - `JointDecoder`: both branches on one 64-D code.
 - `ImageEncoder`: a ResNet-style CNN (torchvision `BasicBlock`s, reduced width) regressing a code from a
-  128x128 crop, optionally with the instance mask as a 4th channel (paper Sec. 4.2).
+  128x128 crop, optionally with the instance mask as a 4th channel (paper Sec. 5.2).
 
 All networks work in the normalised object frame (docs/ARCHITECTURE.md): z up, front +x, bounding-box
 half-diagonal 0.9.

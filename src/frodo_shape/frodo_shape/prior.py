@@ -1,4 +1,4 @@
-"""A trained shape prior: joint decoder (paper Sec. 3), training codes, image encoder (Sec. 4.2).
+"""A trained shape prior: joint decoder (paper Sec. 4), training codes, image encoder (Sec. 5.2).
 
 A prior is a folder (`frodo_shape/priors/<name>/` for shipped ones, or any folder written by
 `frodo train decoder/encoder`): decoder.pt ({'state_dict': float16 weights, 'training_codes': (M, C)}),

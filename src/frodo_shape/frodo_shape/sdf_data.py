@@ -1,4 +1,4 @@
-"""Headless SDF and surface sampling of meshes in the normalised object frame (training data of paper Sec. 3).
+"""Headless SDF and surface sampling of meshes in the normalised object frame (training data of paper Sec. 4).
 
 Per shape (DeepSDF recipe, Park et al. 2019): surface points jittered with Gaussian noise of variance 0.005 and
 0.0005 (std 0.071 and 0.022 normalised units) plus uniform samples in [-1, 1]^3, 16384 in all by default, and

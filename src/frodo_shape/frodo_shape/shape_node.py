@@ -1,5 +1,5 @@
 """Shape node: encodes every kept, associated detection crop into a 64-D code and fuses the codes of
-each object (paper Sec. 4.2: single-view shape code inference and multi-view code fusion).
+each object (paper Sec. 5.2: single-view shape code inference and multi-view code fusion).
 
 In:  /camera/color/image_raw, /frodo/detections (16UC1), /frodo/associations (table).
 Out: /frodo/codes (per-frame table: object_id, label, code[64]; the frame's stamp),

@@ -1,4 +1,4 @@
-"""Training of the joint shape embedding (paper Sec. 3, Eq. 1) and of the image encoder (Sec. 4.2).
+"""Training of the joint shape embedding (paper Sec. 4, Eq. 1) and of the image encoder (Sec. 5.2).
 
 Stage 1, auto-decoder (DeepSDF-style, codes are free parameters in an `nn.Embedding`):
     L = λ1 · CD(Gs(z), X_gt) + λ2 · |clamp(Gd(z, x), δ) − clamp(d_gt, δ)| + ||z||² / σ²,  δ = 0.1,

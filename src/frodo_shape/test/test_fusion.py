@@ -1,4 +1,4 @@
-"""Multi-view code fusion (paper Sec. 4.2): mean and majority vote over the 4 nearest training codes."""
+"""Multi-view code fusion (paper Sec. 5.2): mean and majority vote over the 4 nearest training codes."""
 import numpy as np
 import pytest
 import torch

@@ -1,4 +1,4 @@
-"""The shipped prior (paper Sec. 3 joint embedding + Sec. 4.2 encoder) loads safely and decodes plausible shapes."""
+"""The shipped prior (paper Sec. 4 joint embedding + Sec. 5.2 encoder) loads safely and decodes plausible shapes."""
 import numpy as np
 import pytest
 import torch

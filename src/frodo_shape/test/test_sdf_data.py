@@ -1,4 +1,4 @@
-"""SDF sampling (paper Sec. 3 training data): signs and distances on shapes with known SDFs."""
+"""SDF sampling (paper Sec. 4 training data): signs and distances on shapes with known SDFs."""
 import numpy as np
 import trimesh
 

@@ -1,4 +1,4 @@
-"""Tiny training runs of both stages (paper Eq. 1 auto-decoder, Sec. 4.2 encoder): the losses go down.
+"""Tiny training runs of both stages (paper Eq. 1 auto-decoder, Sec. 5.2 encoder): the losses go down.
 
 Three primitive meshes stand in for the procedural library, so these tests need neither frodo_datasets'
 shape generator nor much CPU (seconds).

@@ -1,5 +1,5 @@
 """Sparse landmarks for `/slam/points` when a dataset ships no SLAM map, so the sparse stage's geometric
-term (paper Sec. 4.3, "SLAM points") has input.
+term (paper Sec. 5.3, "SLAM points") has input.
 
 - From depth (`DepthLandmarks`): every `stride`-th valid depth pixel of a keyframe (a regular grid) is
   back-projected into the world; points are pooled in a voxel grid over all keyframes so far, and a voxel
