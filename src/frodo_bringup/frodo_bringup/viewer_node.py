@@ -1,22 +1,26 @@
-"""Rerun viewer node: a live 3D/2D view of the graph (camera frames, detections, tracks, object meshes,
-SLAM points, optional ground truth), streamed to a Rerun viewer or saved to an .rrd file.
+"""Rerun viewer node: a live 3D/2D view of the graph (camera frames, detections, association tracks and segments,
+object meshes by stage, SLAM points, optional ground truth, per-object stage plots), streamed to a Rerun viewer
+or saved to an .rrd file. Messages in, `frodo_bringup.recording.FrodoRecording` calls out: the entity layout,
+colours and blueprint live there (and `write_recording` makes the same recording offline).
 
-Open a saved recording with `rerun FILE.rrd`; check one headlessly with `rerun rrd verify FILE.rrd`.
+Everything is logged at its message's stamp (data time: the nodes stamp outputs with their frames' stamps), so
+the `stamp` timeline spans the bag's time only. Open a saved recording with `rerun FILE.rrd`; check one
+headlessly with `rerun rrd verify FILE.rrd`.
 """
 from __future__ import annotations
 
-import numpy as np
-import rerun as rr
-from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from geometry_msgs.msg import PoseStamped
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from visualization_msgs.msg import Marker, MarkerArray
 
+from frodo_bringup.recording import FrodoRecording, ObjectMesh, ObjectState, Track
 from frodo_common import conversions as conv
 from frodo_common import topics
+from frodo_common.categories import category_by_id
 from frodo_common.frame_cache import FrameCache
-from frodo_common.geometry import matrix_to_quat
 from frodo_common.node import FrodoNode, run_node
 from frodo_common.params import ParamSpec
+from frodo_optim.states import OBJECT_STATES, STAGES
 
 PARAMS = (
     ParamSpec('mode', 'save', "Where to send the recording: 'save' (rrd_path), 'spawn' (start a viewer), "
@@ -28,24 +32,24 @@ PARAMS = (
 )
 
 
+def _stamp(markers) -> int | None:
+    stamps = [conv.stamp_to_ns(m.header.stamp) for m in markers]
+    return max(stamps) if stamps else None
+
+
+def _boxes(msg: MarkerArray) -> list[Track]:
+    return [Track(m.id, m.ns, *conv.marker_to_box(m)) for m in msg.markers
+            if m.type == Marker.CUBE and m.action == Marker.ADD]
+
+
 class ViewerNode(FrodoNode):
-    """Logs every FroDO topic to Rerun on a `stamp` timeline (seconds) and a `frame` sequence."""
+    """Logs every FroDO topic to Rerun on a `stamp` timeline (data time) and a `frame` sequence."""
 
     def __init__(self, **kwargs):
         super().__init__('viewer_node', PARAMS, **kwargs)
-        rr.init('frodo')
-        mode = self.params['mode']
-        if mode == 'save':
-            rr.save(self.params['rrd_path'])
-        elif mode == 'spawn':
-            rr.spawn()
-        elif mode == 'connect':
-            rr.connect_grpc(self.params['connect_url'])
-        else:
-            raise ValueError(f"mode must be 'save', 'spawn' or 'connect', got {mode!r}")
-        rr.log('world', rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        self.recording = FrodoRecording.open(self.params['mode'], self.params['rrd_path'], self.params['connect_url'],
+                                             int(self.params['image_stride']))
         self.frames = FrameCache(['image', 'pose'], 50)
-        self.frame_index = 0
         self.shown_objects: set[str] = set()
         q = topics.FRAME_QOS
         self.create_subscription(CameraInfo, topics.CAMERA_INFO, self.guarded(self._on_info), q)
@@ -53,95 +57,78 @@ class ViewerNode(FrodoNode):
         self.create_subscription(PoseStamped, topics.POSE, self.guarded(lambda m: self._add(m, 'pose')), q)
         self.create_subscription(Image, topics.DETECTIONS, self.guarded(self._on_detections), q)
         self.create_subscription(PointCloud2, topics.SLAM_POINTS, self.guarded(self._on_slam), q)
-        self.create_subscription(MarkerArray, topics.TRACKS, self.guarded(self._on_tracks), topics.LATCHED_QOS)
-        self.create_subscription(MarkerArray, topics.OBJECTS, self.guarded(self._on_objects), topics.LATCHED_QOS)
+        self.create_subscription(PointCloud2, topics.ASSOCIATIONS, self.guarded(self._on_associations), q)
+        latched = topics.LATCHED_QOS
+        self.create_subscription(MarkerArray, topics.TRACKS, self.guarded(self._on_tracks), latched)
+        self.create_subscription(MarkerArray, topics.OBJECTS, self.guarded(self._on_objects), latched)
+        self.create_subscription(MarkerArray, topics.BOXES, self.guarded(self._on_boxes), latched)
+        self.create_subscription(PointCloud2, OBJECT_STATES, self.guarded(self._on_states), latched)
         if self.params['show_ground_truth']:
-            self.create_subscription(MarkerArray, topics.GROUND_TRUTH, self.guarded(self._on_ground_truth),
-                                     topics.LATCHED_QOS)
-
-    @staticmethod
-    def _time(stamp) -> None:
-        rr.set_time('stamp', timestamp=conv.stamp_to_ns(stamp) * 1e-9)
+            self.create_subscription(MarkerArray, topics.GROUND_TRUTH, self.guarded(self._on_ground_truth), latched)
 
     def _on_info(self, msg: CameraInfo) -> None:
         self.frames.camera_info = msg
 
     def _add(self, msg, part: str) -> None:
         frame = self.frames.add(conv.stamp_to_ns(msg.header.stamp), part, msg)
-        if frame is None or self.frames.camera_info is None:
-            return
-        self.frame_index += 1
-        if (self.frame_index - 1) % max(int(self.params['image_stride']), 1):
-            return
-        self._time(msg.header.stamp)
-        rr.set_time('frame', sequence=self.frame_index)
-        T = conv.pose_to_matrix(frame.parts['pose'].pose)
         info = self.frames.camera_info
-        rr.log('world/camera', rr.Transform3D(translation=T[:3, 3], quaternion=rr.Quaternion(xyzw=matrix_to_quat(T[:3, :3]))))
-        rr.log('world/camera/image', rr.Pinhole(image_from_camera=conv.camera_info_to_K(info),
-                                                resolution=[info.width, info.height],
-                                                camera_xyz=rr.ViewCoordinates.RDF))
-        rr.log('world/camera/image/rgb', rr.Image(conv.image_to_rgb(frame.parts['image'])))
+        if frame is None or info is None:
+            return
+        due = self.recording.frame_count % self.recording.image_stride == 0   # decode only logged images
+        self.recording.log_frame(frame.stamp_ns, conv.camera_info_to_K(info), (info.width, info.height),
+                                 conv.pose_to_matrix(frame.parts['pose'].pose),
+                                 conv.image_to_rgb(frame.parts['image']) if due else None)
+        self.frames.frames.pop(frame.stamp_ns, None)
         self.count('frames_logged')
 
     def _on_detections(self, msg: Image) -> None:
-        self._time(msg.header.stamp)
-        labels = conv.image_to_numpy(msg)
-        rr.log('world/camera/image/detections', rr.SegmentationImage((labels >> 8).astype(np.uint16)))
+        self.recording.log_detections(conv.stamp_to_ns(msg.header.stamp), conv.image_to_numpy(msg))
 
     def _on_slam(self, msg: PointCloud2) -> None:
-        self._time(msg.header.stamp)
-        rr.log('world/slam_points', rr.Points3D(conv.cloud_to_xyz(msg), radii=0.01, colors=[180, 180, 180]))
+        self.recording.log_slam_points(conv.stamp_to_ns(msg.header.stamp), conv.cloud_to_xyz(msg))
+
+    def _on_associations(self, msg: PointCloud2) -> None:
+        self.recording.log_associations(conv.stamp_to_ns(msg.header.stamp), conv.cloud_to_table(msg))
 
     def _on_tracks(self, msg: MarkerArray) -> None:
-        cubes = [m for m in msg.markers if m.type == Marker.CUBE and m.action == Marker.ADD]
-        if not cubes:
-            return
-        self._time(cubes[0].header.stamp)
-        boxes = [conv.marker_to_box(m) for m in cubes]
-        rr.log('world/tracks', rr.Boxes3D(
-            centers=[b[0] for b in boxes], sizes=[b[1] for b in boxes],
-            rotation_axis_angles=[rr.RotationAxisAngle(axis=[0, 0, 1], radians=b[2]) for b in boxes],
-            labels=[f'{m.ns} {m.id}' for m in cubes]))
-
-    @staticmethod
-    def _entity(root: str, m: Marker) -> str:
-        return f'{root}/{m.ns.replace(" ", "_")}_{m.id}'
-
-    def _log_meshes(self, msg: MarkerArray, root: str, alpha: float) -> set[str]:
-        logged = set()
-        for m in msg.markers:
-            path = self._entity(root, m)
-            if m.action == Marker.DELETE:
-                rr.log(path, rr.Clear(recursive=True))
-            elif m.type == Marker.TRIANGLE_LIST and m.points:
-                verts, faces = conv.marker_to_mesh(m)
-                colour = [m.color.r, m.color.g, m.color.b, alpha]
-                rr.log(path, rr.Mesh3D(vertex_positions=verts, triangle_indices=faces, albedo_factor=colour))
-                logged.add(path)
-        return logged
+        stamp = _stamp(msg.markers)
+        if stamp is not None:          # each message is the complete set of tracks
+            self.recording.log_tracks(stamp, _boxes(msg))
 
     def _on_objects(self, msg: MarkerArray) -> None:
-        if msg.markers:
-            self._time(msg.markers[0].header.stamp)
-        logged = self._log_meshes(msg, 'world/objects', 1.0)
-        deleted = {self._entity('world/objects', m) for m in msg.markers if m.action == Marker.DELETE}
-        for path in self.shown_objects - logged - deleted:   # each message is the complete map (CONTRACT.md)
-            rr.log(path, rr.Clear(recursive=True))
-        self.shown_objects = logged
+        """Each message is the complete map (CONTRACT.md): objects missing from it are cleared."""
+        meshes = []
+        for m in msg.markers:
+            if m.action == Marker.ADD and m.type == Marker.TRIANGLE_LIST and m.points:
+                vertices, faces = conv.marker_to_mesh(m)
+                meshes.append(ObjectMesh(m.id, m.ns, vertices, faces, conv.stamp_to_ns(m.header.stamp)))
+        self.shown_objects = self.recording.log_objects(meshes, _stamp(msg.markers))
         self.count('maps_logged')
+
+    def _on_boxes(self, msg: MarkerArray) -> None:
+        stamp = _stamp(msg.markers)
+        if stamp is not None:
+            self.recording.log_boxes(stamp, _boxes(msg))
+
+    def _on_states(self, msg: PointCloud2) -> None:
+        states = []
+        for row in conv.cloud_to_table(msg):
+            category = category_by_id(int(row['category']))
+            stage = int(row['stage'])
+            states.append(ObjectState(int(row['object_id']), category.name if category else str(int(row['category'])),
+                                      STAGES[stage] if stage < len(STAGES) else str(stage), int(row['num_views'])))
+        self.recording.log_states(conv.stamp_to_ns(msg.header.stamp), states)
+
+    def _on_ground_truth(self, msg: MarkerArray) -> None:
+        self.recording.log_ground_truth((m.id, m.ns, *conv.marker_to_mesh(m)) for m in msg.markers
+                                        if m.action == Marker.ADD and m.type == Marker.TRIANGLE_LIST and m.points)
 
     def diagnostic_values(self) -> dict:
         return {'objects_shown': len(self.shown_objects)}
 
-    def _on_ground_truth(self, msg: MarkerArray) -> None:
-        for m in msg.markers:
-            m.color.r, m.color.g, m.color.b = 0.5, 0.9, 0.5
-        self._log_meshes(msg, 'world/ground_truth', 0.35)
-
     def on_shutdown(self) -> None:
         """Flush the recording so a saved .rrd is complete."""
-        rr.disconnect()
+        self.recording.close()
 
 
 def main(args=None) -> int:

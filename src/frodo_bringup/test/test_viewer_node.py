@@ -1,6 +1,7 @@
-"""The Rerun viewer node, run as its own process in a real rclpy graph, records frames and object meshes
-into an .rrd that `rerun rrd verify` accepts; an object missing from a later /frodo/objects message (each one is
-the complete map, CONTRACT.md) is cleared."""
+"""The Rerun viewer node, run as its own process in a real rclpy graph, records frames, detections and object
+meshes into an .rrd that `rerun rrd verify` accepts, all at their messages' stamps (bag time, one time range;
+no wall-clock timeline); an object missing from a later /frodo/objects message (each one is the complete map,
+CONTRACT.md) is cleared."""
 import os
 import signal
 import subprocess
@@ -9,6 +10,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
@@ -38,25 +40,37 @@ def test_viewer_records_a_verifiable_rrd(tmp_path):
         pubs = {'image': node.create_publisher(Image, topics.IMAGE, topics.FRAME_QOS),
                 'info': node.create_publisher(CameraInfo, topics.CAMERA_INFO, topics.FRAME_QOS),
                 'pose': node.create_publisher(PoseStamped, topics.POSE, topics.FRAME_QOS),
+                'det': node.create_publisher(Image, topics.DETECTIONS, topics.FRAME_QOS),
                 'objects': node.create_publisher(MarkerArray, topics.OBJECTS, topics.LATCHED_QOS)}
         diags = []
         node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, diags.append, 50)
         _wait_for_subscribers(node, pubs.values())
         K = np.array([[100.0, 0, 32], [0, 100, 24], [0, 0, 1]])
-        for i in range(3):
-            stamp = 1_700_000_000_000_000_000 + i * 10**8
+        stamps = [1_700_000_000_000_000_000 + i * 10**8 for i in range(3)]
+        labels = np.zeros((48, 64), np.uint16)
+        labels[10:20, 10:20] = 62 * 256 + 1
+        for stamp in stamps:
+            i = stamps.index(stamp)
             pubs['info'].publish(conv.make_camera_info(K, 64, 48, stamp, 'cam'))
             pubs['image'].publish(conv.numpy_to_image(np.full((48, 64, 3), 40 * i, np.uint8), 'rgb8', stamp, 'cam'))
             pubs['pose'].publish(conv.make_pose_stamped(look_at([2, 0, 1], [0, 0, 0.5]), stamp, 'world'))
+            pubs['det'].publish(conv.numpy_to_image(labels, '16UC1', stamp, 'cam'))
         verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=float)
-        pubs['objects'].publish(MarkerArray(markers=[conv.mesh_to_marker(verts, [[0, 1, 2]], 'chair', 1, 0, 'world')]))
+        # the optimiser stamps an object with the newest frame it used (data time)
+        pubs['objects'].publish(MarkerArray(markers=[conv.mesh_to_marker(verts, [[0, 1, 2]], 'chair', 1, stamps[1],
+                                                                         'world')]))
         deadline = time.time() + 20
         while time.time() < deadline and latest_status(diags, 'viewer_node').get('maps_logged') != '1':
             rclpy.spin_once(node, timeout_sec=0.1)
         assert latest_status(diags, 'viewer_node').get('objects_shown') == '1'
         # The next map has object 2 only, and no DELETE of object 1 (e.g. from a restarted optimiser).
-        pubs['objects'].publish(MarkerArray(markers=[conv.mesh_to_marker(verts, [[0, 1, 2]], 'chair', 2, 0, 'world')]))
-        time.sleep(2.0)
+        pubs['objects'].publish(MarkerArray(markers=[conv.mesh_to_marker(verts, [[0, 1, 2]], 'chair', 2, stamps[2],
+                                                                         'world')]))
+        deadline = time.time() + 20
+        while time.time() < deadline and latest_status(diags, 'viewer_node').get('maps_logged') != '2':
+            rclpy.spin_once(node, timeout_sec=0.1)
+        assert latest_status(diags, 'viewer_node').get('objects_shown') == '1'
+        assert int(latest_status(diags, 'viewer_node').get('frames_logged', 0)) == 3
     finally:
         rclpy.shutdown()
         os.killpg(proc.pid, signal.SIGINT)
@@ -70,3 +84,14 @@ def test_viewer_records_a_verifiable_rrd(tmp_path):
     assert 'world/objects' in stats.stdout + stats.stderr and 'world/camera' in stats.stdout + stats.stderr
     assert '/world/objects/chair_1 - data columns: [Clear:is_recursive]' in stats.stdout + stats.stderr
     assert '/world/objects/chair_2 - data columns: [Clear' not in stats.stdout + stats.stderr
+    from rerun.chunk import RrdReader
+    timed: dict[str, set] = {}
+    for chunk in RrdReader(rrd).stream():
+        batch = chunk.to_record_batch()
+        assert set(chunk.timeline_names) <= {'stamp', 'frame'}          # no log_time / log_tick
+        if 'stamp' in batch.schema.names:
+            timed.setdefault(chunk.entity_path, set()).update(batch.column('stamp').cast(pa.int64()).to_pylist())
+    assert timed['/world/camera/image/rgb'] == set(stamps)
+    assert timed['/world/camera/image/detections'] == set(stamps)
+    assert timed['/world/objects/chair_1'] == {stamps[1], stamps[2]}      # shown at frame 2, cleared at frame 3
+    assert timed['/world/objects/chair_2'] == {stamps[2]}
