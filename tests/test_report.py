@@ -24,7 +24,7 @@ def test_demo_set_is_reconstructed_scored_rendered_and_then_reused(tmp_path, in_
     page, work, lines = tmp_path / 'docs' / 'results.md', tmp_path / 'work', []
     assert report(['demo'], page=page, work=work, params=[params], limit=1, log=lines.append, commit='c0ffee') == []
     text = page.read_text()
-    assert 'at commit `c0ffee`' in text and 'cores' in text and 'GPU:' in text
+    assert 'from results computed at commit `c0ffee` (page rendered at' in text and 'cores' in text and 'GPU:' in text
     row = next(line for line in text.splitlines() if line.startswith('| demo_walk |'))
     cells = [c.strip() for c in row.strip('|').split('|')]
     assert cells[1:4] == ['4', '4', '0']                       # objects, found, false positives

@@ -26,6 +26,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--params', action='append', default=[], metavar='FILE',
                         help='parameter YAML or shipped preset for every bag (repeatable; later files win)')
     parser.add_argument('--limit', type=int, default=None, metavar='N', help='at most N bags per set')
+    parser.add_argument('--commit', default=None, metavar='KEY',
+                        help='use (and resume) the results stored under KEY (a directory of --work) instead of the '
+                             "checkout's commit, e.g. to re-render after a commit that changed only documents")
     parser.epilog = 'Exit code: 0 page written, 1 a bag failed (the page says which), 2 bad arguments.'
 
 
@@ -36,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
     command = ' '.join(['frodo report', *sys.argv[2:]]) if sys.argv[1:2] == ['report'] else 'frodo report'
     try:
         failed = report(names, page=args.page, work=args.work, params=args.params, limit=args.limit,
-                        command=command, log=lambda line: print(line, flush=True))
+                        command=command, log=lambda line: print(line, flush=True), commit=args.commit)
     except ValueError as err:
         print(f'frodo report: error: {err}', file=sys.stderr)
         return 2
