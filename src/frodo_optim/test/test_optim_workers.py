@@ -133,6 +133,10 @@ def test_two_workers_split_the_objects_and_a_depth_1_listener_gets_the_complete_
         assert probe.spin(lambda: sorted(probe.latest) == [1, 2, 4, 5] and _idle(probe, 'optim_node_1')
                           and _ids(probe.boxes[-1]) == [1, 2, 4, 5] and _state_ids(probe) == [1, 2, 4, 5])
         assert [(m.id, m.action) for m in probe.messages[-1].markers if m.action == Marker.DELETE] == [(3, Marker.DELETE)]
+        # The merged map keeps the inputs' data time (STAMP, far from now), worker 1's share and the DELETEs too.
+        assert {conv.stamp_to_ns(m.header.stamp) for m in probe.messages[-1].markers + probe.boxes[-1].markers} \
+            == {STAMP}
+        assert conv.stamp_to_ns(probe.states[-1].header.stamp) == STAMP
 
         # The merger restarts (same name, nothing resumed): it takes worker 1's latched share at once and
         # publishes the complete map again once its own objects are back from the latched inputs.
