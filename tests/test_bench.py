@@ -54,3 +54,25 @@ def test_dense_bench_oracle_code_is_the_true_shape_in_its_object_frame(tmp_path)
     sidecar_path(bag).unlink()
     with pytest.raises(SystemExit, match='gt.json'):
         bench_dense.oracle_code(prior, bag, gt.id, gt.mesh)
+
+
+def test_stage_counts_add_up_and_are_stated_against_the_roofline(tmp_path):
+    """`stages` on the demo bag with few iterations: every optimiser stage that ran has its counts, the SDF
+    queries per iteration follow from the totals and the rate is a fraction of the measured roofline."""
+    from frodo_bringup.testing import FAST_OPTIM_PARAMS
+    params = tmp_path / 'fast.yaml'
+    params.write_text(FAST_OPTIM_PARAMS)
+    limits = bench.roofline('cpu', quick=True)
+    assert limits['matmul_gflops'] > 0 and limits['sdf_forward_gflops'] > 0
+    doc = bench.pipeline_stages(bench.DEMO_BAG, 'cpu', limits, params=[params])
+    rows = {r['stage']: r for r in doc['rows']}
+    assert set(rows) == {'fused', 'sparse', 'dense'} and rows['fused']['objects'] == 4
+    for name in ('sparse', 'dense'):
+        row = rows[name]
+        assert row['iterations'] > 0 and row['sdf_queries'] > 0 and row['gflop'] > 0
+        assert row['sdf_queries_per_iteration'] == round(row['sdf_queries'] / row['iterations'])
+        assert 0 < row['fraction_of_matmul_peak'] < 1.5
+    assert rows['sparse']['point_shapes'] > 0          # the sparse stage decodes points, the dense one SDFs
+    assert rows['dense']['sdf_queries_with_grad'] > 0
+    assert 'of the matmul peak' in bench.summary({'machine': bench.machine_info('cpu'), 'roofline': limits,
+                                                  'stages': doc})

@@ -3,7 +3,11 @@
 Sections (each a function returning plain data; a section that cannot run says why instead):
 - `machine`: CPU, cores, load average, torch threads, device, versions, git commit.
 - `decoder`: shape prior decoders (paper Sec. 4): SDF queries per second, point-decoder shapes per second,
-  marching-cubes mesh time; `bag_read`: reading + decoding the demo bag (messages and MB per second).
+  marching-cubes mesh time; `roofline`: this machine's float32 matmul GFLOP/s and the SDF decoder's own on one
+  large batch (without and with gradients);
+- `stages`: the offline pipeline (`frodo reconstruct`) on the demo bag with the decoders' work counted per
+  optimiser stage (`frodo_shape.counting`): seconds, iterations, SDF queries per iteration, point-decoder shapes,
+  GFLOP and the achieved rate as a fraction of the roofline; `bag_read`: reading + decoding the demo bag (messages and MB per second).
 - `sparse` / `dense`: optimiser seconds per iteration against the number of views (paper Sec. 5.3, supp.
   Table "Speed comparison": sparse 0.07 s, dense 4.96 s per iteration), from `bench/bench_sparse.py` and
   `bench/bench_dense.py` (each optional: skipped with a note when absent).
@@ -35,6 +39,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 from types import ModuleType
 from typing import Any, Callable
@@ -135,6 +140,103 @@ def decoder_throughput(device: str, quick: bool) -> dict[str, Any]:
     return {'sdf_queries_per_s': round(len(points) / sdf_s), 'sdf_batch': len(points),
             'point_decoder_shapes_per_s': round(len(codes) / points_s, 1), 'points_per_shape': 2048,
             'mesh_resolution': resolution, 'mesh_s': round(mesh_s, 3)}
+
+
+def roofline(device: str, quick: bool) -> dict[str, Any]:
+    """What this machine can do: a float32 matrix product's GFLOP/s (the peak a dense layer can reach here) and
+    the SDF decoder's own GFLOP/s on one large batch, without and with gradients (the best case of a stage)."""
+    import torch
+    from frodo_shape.counting import sdf_flops_per_query
+    from frodo_shape.prior import DEFAULT_PRIOR, ShapePrior
+    n = 1024 if quick else 2048
+    a = torch.randn(n, n, device=device)
+    b = torch.randn(n, n, device=device)
+
+    def product() -> None:
+        torch.mm(a, b)
+        if device.startswith('cuda'):
+            torch.cuda.synchronize()
+    product()
+    matmul_s = min(_timed(product, 1) for _ in range(3 if quick else 5))
+    prior = ShapePrior.load(DEFAULT_PRIOR, device=device)
+    flops = sdf_flops_per_query(prior.decoder.sdf_net)
+    code = torch.as_tensor(prior.training_codes[:1], dtype=torch.float32, device=device)
+    xyz = torch.rand(1, 32768, 3, device=device) * 2 - 1
+
+    def forward() -> None:
+        with torch.inference_mode():
+            prior.decoder.sdf(code, xyz)
+
+    def forward_backward() -> None:
+        x = xyz.clone().requires_grad_(True)
+        prior.decoder.sdf(code, x).sum().backward()
+    forward()
+    forward_backward()
+    fwd_s = min(_timed(forward, 1) for _ in range(3))
+    fb_s = min(_timed(forward_backward, 1) for _ in range(3))
+    queries = xyz.shape[1]
+    return {'matmul_n': n, 'matmul_gflops': round(2 * n ** 3 / matmul_s / 1e9, 1),
+            'sdf_flops_per_query': flops, 'sdf_batch': queries,
+            'sdf_forward_gflops': round(queries * flops / fwd_s / 1e9, 1),
+            'sdf_forward_backward_gflops': round(2 * queries * flops / fb_s / 1e9, 1)}
+
+
+def pipeline_stages(bag: Path, device: str, limits: dict[str, Any] | None,
+                    params: list[str | os.PathLike] | tuple = ()) -> dict[str, Any]:
+    """The offline pipeline (`frodo reconstruct`) on `bag` with the decoder's work counted per optimiser stage
+    (frodo_shape.counting): objects, seconds, iterations, SDF queries per iteration, point-decoder shapes,
+    GFLOP and the achieved GFLOP/s against this machine's matmul peak and the decoder's own (`roofline`);
+    params: parameter files as for `frodo reconstruct --params` (default: the shipped defaults)."""
+    from frodo_bringup.pipeline import PipelineConfig, reconstruct
+    from frodo_shape.counting import DecoderCounter
+    from frodo_shape.prior import ShapePrior
+    bag = demo_bag(bag)
+    base = PipelineConfig.from_params_files(params)
+    config = replace(base, shape={**base.shape, 'device': device}, optim=replace(base.optim, device=device))
+    prior = ShapePrior.load(config.optim.prior, device=device)
+    counter = DecoderCounter(prior.decoder)
+    ended: list[tuple[Any, Any]] = []
+    started = time.perf_counter()
+    with counter:
+        result = reconstruct(bag, config, prior=prior, on_stage=lambda stage: ended.append((stage, counter.snapshot())))
+    wall = time.perf_counter() - started
+    rows: dict[str, dict[str, Any]] = {}
+    previous = None
+    for stage, snapshot in ended:
+        work = snapshot - previous if previous is not None else snapshot
+        previous = snapshot
+        row = rows.setdefault(stage.stage, {'stage': stage.stage, 'objects': 0, 'seconds': 0.0, 'iterations': 0,
+                                            'views': [], 'sdf_queries': 0, 'sdf_queries_with_grad': 0,
+                                            'point_shapes': 0, 'gflop': 0.0})
+        row['objects'] += 1
+        row['seconds'] += stage.seconds
+        row['iterations'] += stage.iterations
+        row['views'].append(stage.views)
+        row['sdf_queries'] += work.sdf_queries
+        row['sdf_queries_with_grad'] += work.sdf_queries_with_grad
+        row['point_shapes'] += work.point_shapes
+        row['gflop'] += work.flops / 1e9
+    peak = (limits or {}).get('matmul_gflops')
+    decoder_peak = (limits or {}).get('sdf_forward_backward_gflops')
+    out_rows = []
+    for row in rows.values():
+        rate = row['gflop'] / row['seconds'] if row['seconds'] > 0 else 0.0
+        out_rows.append({
+            **{k: v for k, v in row.items() if k != 'views'},
+            'seconds': round(row['seconds'], 2), 'gflop': round(row['gflop'], 2),
+            'seconds_per_object': round(row['seconds'] / row['objects'], 2),
+            'mean_views': round(float(np.mean(row['views'])), 1) if row['views'] else 0,
+            'sdf_queries_per_iteration': round(row['sdf_queries'] / row['iterations']) if row['iterations'] else None,
+            'seconds_per_iteration': round(row['seconds'] / row['iterations'], 4) if row['iterations'] else None,
+            'achieved_gflops': round(rate, 2),
+            'fraction_of_matmul_peak': round(rate / peak, 4) if peak else None,
+            'fraction_of_decoder_peak': round(rate / decoder_peak, 4) if decoder_peak else None})
+    stages = {e.stage: 0 for e in result.estimates.values()}
+    for e in result.estimates.values():
+        stages[e.stage] += 1
+    return {'bag': bag.name, 'wall_s': round(wall, 1), 'frames': result.frames,
+            'phases_s': {k: round(v, 2) for k, v in result.seconds.items()}, 'final_stages': stages,
+            'rows': out_rows, 'limits': limits or {}}
 
 
 def bag_read_throughput(bag: Path) -> dict[str, Any]:
@@ -342,6 +444,8 @@ def run_all(out: Path, quick: bool, device: str, sections: list[str], log: Calla
     views = [5, 35] if quick else [5, 10, 20, 35, 60]
     plan: dict[str, Callable[[], dict[str, Any]]] = {
         'decoder': lambda: decoder_throughput(device, quick),
+        'roofline': lambda: roofline(device, quick),
+        'stages': lambda: pipeline_stages(bag, device, doc.get('roofline')),
         'bag_read': lambda: bag_read_throughput(bag),
         'sparse': lambda: optimiser_sweep('bench_sparse', views, 10 if quick else 30, 1 if quick else 3, device),
         'dense': lambda: optimiser_sweep('bench_dense', [5, 10] if quick else [5, 10, 20, 35], 2 if quick else 3,
@@ -380,7 +484,7 @@ def _optim_workers(bag: Path, out: Path, quick: bool, log: Callable[[str], None]
     return objects_per_minute(bag, out, workers=(1, 2), rate=1.0, quick=quick, log=log)
 
 
-SECTIONS = ('decoder', 'bag_read', 'sparse', 'dense', 'association', 'end_to_end')   # the default set
+SECTIONS = ('decoder', 'roofline', 'stages', 'bag_read', 'sparse', 'dense', 'association', 'end_to_end')   # default
 ALL_SECTIONS = SECTIONS + ('soak', 'optim_workers')
 
 
@@ -394,6 +498,22 @@ def summary(doc: dict[str, Any]) -> str:
     if 'sdf_queries_per_s' in d:
         lines.append(f"decoder: {d['sdf_queries_per_s']:,} SDF queries/s, {d['point_decoder_shapes_per_s']} "
                      f"point-decoder shapes/s, mesh at {d['mesh_resolution']}^3 in {d['mesh_s']} s")
+    r = doc.get('roofline', {})
+    if 'matmul_gflops' in r:
+        lines.append(f"roofline: float32 matmul {r['matmul_gflops']} GFLOP/s ({r['matmul_n']}^2); SDF decoder "
+                     f"{r['sdf_flops_per_query']:,} FLOP/query, {r['sdf_forward_gflops']} GFLOP/s forward, "
+                     f"{r['sdf_forward_backward_gflops']} with gradients (batch {r['sdf_batch']:,})")
+    st = doc.get('stages', {})
+    if 'rows' in st:
+        lines.append(f"pipeline on {st['bag']}: {st['wall_s']} s ({', '.join(f'{k} {v} s' for k, v in st['phases_s'].items())}); "
+                     f"final stages {st['final_stages']}")
+        for row in st['rows']:
+            frac = row['fraction_of_matmul_peak']
+            lines.append(f"  {row['stage']:>6}: {row['objects']} objects, {row['seconds_per_object']} s each, "
+                         f"{row['iterations']} iterations, {row['mean_views']} views, "
+                         f"{row['sdf_queries_per_iteration'] or '-'} SDF queries/iteration, {row['point_shapes']} "
+                         f"point-decoder shapes, {row['gflop']} GFLOP at {row['achieved_gflops']} GFLOP/s"
+                         + (f" = {100 * frac:.1f} % of the matmul peak" if frac is not None else ''))
     b = doc.get('bag_read', {})
     if 'messages_per_s' in b:
         lines.append(f"bag read+decode: {b['messages_per_s']:,} messages/s, {b['mb_per_s']} MB/s ({b['bag']})")

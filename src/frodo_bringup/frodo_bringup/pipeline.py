@@ -199,9 +199,11 @@ def bag_frames(reader: BagReader, need_instances: bool, with_rgb: bool = True) -
 
 
 def reconstruct(bag: str | os.PathLike, config: PipelineConfig | None = None,
-                progress: Callable[[str], None] | None = None, prior: ShapePrior | None = None) -> ObjectMap:
+                progress: Callable[[str], None] | None = None, prior: ShapePrior | None = None,
+                on_stage: Callable[[StageOutcome], None] | None = None) -> ObjectMap:
     """Reconstruct every object of a contract bag (see the module docstring). progress: called with one line
-    per phase and per object stage; prior: an already loaded prior (default: `config.optim.prior`).
+    per phase and per object stage; prior: an already loaded prior (default: `config.optim.prior`); on_stage:
+    called with each object stage's `StageOutcome` as it ends (stage, reason, seconds, iterations, views).
     Raises preflight.BagRefused when the bag cannot give objects (checked before any work), PipelineError
     when no frame is complete."""
     config = config or PipelineConfig()
@@ -275,15 +277,17 @@ def reconstruct(bag: str | os.PathLike, config: PipelineConfig | None = None,
     outcomes: dict[int, ObjectOutcome] = {}
     todo = [oid for oid in sorted(tracks) if oid in codes and codes[oid][1] >= config.optim.min_views]
 
-    def on_stage(stage: StageOutcome) -> None:
+    def stage_ended(stage: StageOutcome) -> None:
         name = tracks[stage.object_id][0]
         say(f'object {stage.object_id} ({name}): {stage.stage} {stage.seconds:.1f} s, {stage.reason.text}'
             + (f' ({stage.detail})' if stage.detail else ''))
+        if on_stage is not None:
+            on_stage(stage)
 
     for oid in todo:
         category, num_views, code = codes[oid]
         outcome = reconstructor.reconstruct(ObjectInput(oid, tracks[oid][0], category, tracks[oid][1], code, num_views),
-                                            views, scene, on_stage=on_stage)
+                                            views, scene, on_stage=stage_ended)
         if outcome.error:
             reader.problems.append(f'object {oid}: {outcome.error}')
             say(f'object {oid}: {outcome.error}')

@@ -126,7 +126,8 @@ class DenseResult:
     stop: DenseStop = DenseStop.COMPLETED
     energies: dict[str, float] = field(default_factory=dict)
     initial_energies: dict[str, float] = field(default_factory=dict)
-    iterations: int = 0
+    iterations: int = 0               # of this run (of the chosen start after `refine_dense_starts`)
+    total_iterations: int = 0         # of every start (`refine_dense_starts`; 0 from `refine_dense`)
     best_iteration: int = 0
     views: int = 0
     seconds: float = 0.0
@@ -324,6 +325,7 @@ def refine_dense_starts(prior, code, T_world_object: np.ndarray, views: list[Den
         chosen.improved = True
         chosen.reason = f'start {best} of {len(results)} (E {check(results[0]):.3f} from the sparse result): {chosen.reason}'
     chosen.seconds = sum(r.seconds for r in results)
+    chosen.total_iterations = sum(r.iterations for r in results)
     if skipped or any(r.stop is DenseStop.INTERRUPTED for r in results):
         chosen.stop = DenseStop.INTERRUPTED     # not every start ran to its end: say so, whichever won
     return chosen, best

@@ -68,6 +68,8 @@ class StageOutcome:
     detail: str = ''
     seconds: float = 0.0
     published: bool = True           # the estimate changed (a listener should publish the map)
+    iterations: int = 0              # optimiser iterations of every run/start of the stage (sparse, dense)
+    views: int = 0                   # views the stage used
     energies: dict[str, float] = field(default_factory=dict)   # sparse/dense: total energy 'initial', 'final'
 
 
@@ -198,7 +200,8 @@ class ObjectReconstructor:
         e0, e1 = result.initial_energies.get('total', np.nan), result.energies.get('total', np.nan)
         detail = f'{result.views} views, {result.iterations} it, E {e0:.3f}->{e1:.3f}, {result.seconds:.2f}s'
         return StageOutcome(oid, 'sparse', reason, estimate, detail, seconds,
-                            energies=_energies(result.initial_energies, result.energies)), result
+                            energies=_energies(result.initial_energies, result.energies),
+                            iterations=result.total_iterations, views=result.views), result
 
     def _dense(self, obj: ObjectInput, sparse: ObjectEstimate, sparse_result: SparseResult, views: ViewMemory,
                scene: Scene, floor: float | None, should_stop: Callable[[], bool] | None, stamp: int) -> StageOutcome:
@@ -225,14 +228,16 @@ class ObjectReconstructor:
             if self.estimates.get(oid) is sparse:
                 sparse.stage_reason = reason
                 sparse.timings['dense_s'] = seconds
-            return StageOutcome(oid, 'dense', reason, self.estimates.get(oid), detail, seconds, energies=energies)
+            return StageOutcome(oid, 'dense', reason, self.estimates.get(oid), detail, seconds, energies=energies,
+                                iterations=result.total_iterations, views=result.views)
         mesh_world = mesh.copy()
         mesh_world.apply_transform(result.T_world_object)
         estimate = ObjectEstimate(oid, sparse.class_name, sparse.category, result.code, result.T_world_object,
                                   result.scale, world_box(mesh, result.T_world_object, result.yaw), sparse.num_views,
                                   'dense', mesh_world, dict(sparse.timings, dense_s=seconds), reason, stamp)
         self.estimates[oid] = estimate
-        return StageOutcome(oid, 'dense', reason, estimate, detail, seconds, energies=energies)
+        return StageOutcome(oid, 'dense', reason, estimate, detail, seconds, energies=energies,
+                            iterations=result.total_iterations, views=result.views)
 
 
 def _energies(initial: dict[str, float], final: dict[str, float]) -> dict[str, float]:

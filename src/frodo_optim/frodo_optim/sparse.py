@@ -148,7 +148,8 @@ class SparseResult:
     init_yaw: float = 0.0
     placement: str = ''               # the initial placement that won ('input box', 'ray centre, ...')
     input_energy: float = math.nan    # energy of the input box placement (best of its 4 symmetric yaws)
-    iterations: int = 0
+    iterations: int = 0               # of the chosen run
+    total_iterations: int = 0         # of every run (box start, placement hypothesis, code restart)
     best_iteration: int = 0
     views: int = 0
     seconds: float = 0.0
@@ -553,6 +554,7 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
     return SparseResult(zb.cpu().numpy().astype(np.float32), pose_matrix(yb, tb, s), float(s), yb, np.asarray(tb),
                         reason=reason, status=status, energies=terms_b, initial_energies=initial_terms, init_yaw=yaw0,
                         placement=source, input_energy=input_energy, iterations=done,
+                        total_iterations=sum(run[0][2] for run in runs),
                         best_iteration=best_it, views=len(views), seconds=time.perf_counter() - start,
                         landmarks=np.asarray(common if chosen > 0 else box_set, np.float32) if cfg.landmark_filter else None,
                         alternatives=alternatives)
