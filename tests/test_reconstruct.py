@@ -3,7 +3,9 @@ result for the same inputs, outputs as `frodo run` writes them, and bags that ca
 import json
 from pathlib import Path
 
+import pyarrow as pa
 import pytest
+from rerun.chunk import RrdReader
 
 from frodo_bringup.cli import main as frodo
 from frodo_bringup.pipeline import PipelineConfig, PipelineError, reconstruct
@@ -13,6 +15,12 @@ from frodo_common.bag import BagReader, BagWriter
 from frodo_common.evaluation import EvalObject, evaluate, load_ground_truth_bag, load_predictions
 
 DEMO = Path(__file__).resolve().parents[1] / 'bags' / 'demo_walk.mcap'
+
+
+def chunk_stamps(chunk) -> list[int]:
+    """The `stamp` times (ns) of a recording chunk's rows (none for static data)."""
+    batch = chunk.to_record_batch()
+    return batch.column('stamp').cast(pa.int64()).to_pylist() if 'stamp' in batch.schema.names else []
 
 
 def without_topic(src: Path, dst: Path, topic: str) -> Path:
@@ -61,6 +69,15 @@ def test_cli_writes_what_frodo_run_writes_and_scores_it(tmp_path, fast_params, c
     assert (out / record['mesh']).is_file() and len(load_predictions(out)) == 4
     assert (out / 'eval.json').is_file() and (out / 'result.png').is_file()
     assert 'evaluation against the ground truth' in capsys.readouterr().out
+    # the Rerun recording: each object's mesh at its data time, inside the bag's span, with the association
+    stamps: dict[str, list[int]] = {}
+    for chunk in RrdReader(out / 'frodo.rrd').stream():
+        stamps.setdefault(chunk.entity_path, []).extend(chunk_stamps(chunk))
+    objects = sorted(e for e in stamps if e.startswith('/world/objects/') and e.count('/') == 3)
+    assert objects == sorted(f"/world/objects/{r['class'].replace(' ', '_')}_{r['id']}" for r in document['objects'])
+    images = stamps['/world/camera/image/rgb']
+    assert len(images) > 10 and all(min(images) <= t <= max(images) for e in objects for t in stamps[e])
+    assert stamps['/world/associations'] and stamps['/world/tracks']
 
 
 def test_a_bag_without_masks_is_refused_with_the_cause_and_the_fix(tmp_path, capsys):

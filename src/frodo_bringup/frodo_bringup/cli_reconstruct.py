@@ -3,10 +3,10 @@
     frodo reconstruct bags/demo_walk.mcap --out out/offline
     frodo reconstruct BAG --out DIR --params keyframes --params my.yaml
 
-Writes what `frodo run --out DIR` writes (`objects.json`, `meshes/<id>_<class>.ply`) from the same layers the
-nodes use (`frodo_bringup.pipeline`), as fast as the machine allows, and prints each object's stages as they
-end. A bag with `/ground_truth/objects` is also scored (`eval.json`, `result.png`). The same bag and parameters
-give the same objects.json (timings aside).
+Writes what `frodo run --out DIR --viewer rrd` writes (`objects.json`, `meshes/<id>_<class>.ply`, the Rerun
+recording `frodo.rrd`) from the same layers the nodes use (`frodo_bringup.pipeline`), as fast as the machine
+allows, and prints each object's stages as they end. A bag with `/ground_truth/objects` is also scored
+(`eval.json`, `result.png`). The same bag and parameters give the same objects.json (timings aside).
 """
 from __future__ import annotations
 
@@ -30,6 +30,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--threads', type=int, default=0, metavar='N',
                         help='torch CPU threads (default: torch\'s own choice)')
     parser.add_argument('--quiet', action='store_true', help='no per-object progress lines')
+    parser.add_argument('--no-recording', action='store_true', help='do not write the Rerun recording DIR/frodo.rrd')
     parser.epilog = 'Exit code: 0 done, 1 the bag cannot give objects or a layer failed, 2 bad arguments.'
 
 
@@ -52,6 +53,11 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_FAILED
     args.out.mkdir(parents=True, exist_ok=True)
     records = result.write(args.out)
+    if not args.no_recording:
+        from frodo_bringup.recording import write_recording
+        from frodo_bringup.run import RECORDING_FILE
+        write_recording(args.bag, result, args.out / RECORDING_FILE, tracks=result.tracks,
+                        associations=result.associations)
     print(summary_table(records))
     for problem in result.problems:
         print(f'warning: {problem}')

@@ -121,6 +121,8 @@ class ObjectMap:
     has_ground_truth: bool = False     # the bag has /ground_truth/objects (evaluation only, never read here)
     problems: list[str] = field(default_factory=list)
     seconds: dict[str, float] = field(default_factory=dict)
+    tracks: dict[int, tuple[str, tuple]] = field(default_factory=dict)   # the association's final boxes
+    associations: dict[int, np.ndarray] = field(default_factory=dict)    # per frame stamp: ASSOCIATION_DTYPE rows
 
     def records(self) -> list[dict[str, Any]]:
         """One objects.json record per object, by id (CONTRACT.md "Files written by the command line")."""
@@ -136,7 +138,8 @@ class ObjectMap:
         return out
 
     def write(self, out_dir: str | os.PathLike) -> list[dict[str, Any]]:
-        """objects.json and meshes/<id>_<class>.ply (world frame) under out_dir; returns the records."""
+        """objects.json and meshes/<id>_<class>.ply (world frame) under out_dir; returns the records. The Rerun
+        recording: `frodo_bringup.recording.write_recording(bag, object_map, path)`."""
         out = Path(out_dir)
         (out / MESH_DIR).mkdir(parents=True, exist_ok=True)
         records = self.records()
@@ -252,6 +255,7 @@ def reconstruct(bag: str | os.PathLike, config: PipelineConfig | None = None,
     encoder = CodeEncoder(prior, config.shape)
     views = ViewMemory(config.optim)
     landmarks = None
+    associations: dict[int, np.ndarray] = {}
     for frame in bag_frames(reader, need_instances=False):
         landmarks = frame.landmarks if frame.landmarks is not None else landmarks
         if frame.stamp not in kept_instances:
@@ -262,6 +266,7 @@ def reconstruct(bag: str | os.PathLike, config: PipelineConfig | None = None,
                                    f'instances {labels.shape[::-1]}; not encoded')
             continue
         rows = assoc.frame_table(frame.stamp)
+        associations[frame.stamp] = rows
         encoder.encode_frame(frame.stamp, frame.rgb, labels, rows)
         depth = frame.depth_m if frame.depth_m is not None and frame.depth_m.shape == labels.shape else None
         views.add_frame(frame.stamp, frame.K, frame.T_world_camera, labels, rows, frame.rgb, depth)
@@ -294,4 +299,4 @@ def reconstruct(bag: str | os.PathLike, config: PipelineConfig | None = None,
         outcomes[oid] = outcome
     seconds['optimisation'] = time.perf_counter() - t0
     return ObjectMap(dict(reconstructor.estimates), outcomes, config.world_frame, frames,
-                     topics.GROUND_TRUTH in reader.topics(), list(reader.problems), seconds)
+                     topics.GROUND_TRUTH in reader.topics(), list(reader.problems), seconds, tracks, associations)
