@@ -3,6 +3,7 @@
     frodo synth OUT.mcap --scene walk --objects 4 --classes chair,"dining table" --frames 60 --seed 0
     python -m frodo_datasets.cli_synth OUT.mcap --scene orbit --objects 1 --frames 35
     frodo synth OUT.mcap --preset handheld --objects 4 --frames 35 --seed 5      # real-capture regime
+    frodo synth OUT.mcap --preset realwalk --objects 5 --seed 5                   # inside-out walk (issue 27)
 
 A preset sets defaults (`realcapture.preset_kwargs`); any option given explicitly overrides it.
 """
@@ -14,7 +15,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from frodo_datasets.realcapture import PRESETS, preset_kwargs
-from frodo_datasets.scene import FAMILY_SETS, TRAJECTORIES
+from frodo_datasets.scene import CONTINUOUS_PATHS, FAMILY_SETS, TRAJECTORIES
 from frodo_datasets.shapes import class_names
 from frodo_datasets.synth import SynthConfig, sidecar_path, synthesize
 
@@ -51,10 +52,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--preset', choices=PRESETS, default='clean',
                         help='clean: exact masks, poses and images (default); handheld: every real-capture '
                              'condition at realistic levels (close-range hand-held scan, 35 keyframes, chairs '
-                             'under tables, clutter, mask and pose errors, camera effects)')
+                             'under tables, clutter, mask and pose errors, camera effects); realwalk: the '
+                             'handheld conditions on an inside-out walk through the middle of a room looking '
+                             'outwards (every object seen from one side in a few keyframes, chairs behind tables)')
     parser.add_argument('--scene', choices=TRAJECTORIES, default=None,
                         help='walk: ScanNet-like room walk (default); orbit: Redwood-like loop around one '
-                             'object/group; handheld: close-range scan, frames spread over a long path')
+                             'object/group; handheld: close-range scan, frames spread over a long path; '
+                             'insideout: furniture along the walls, a slow walk through the middle panning round '
+                             '(rotation-dominated, narrow baseline)')
     parser.add_argument('--objects', type=int, default=3, help='number of objects (default 3)')
     parser.add_argument('--classes', type=_classes, default=('chair', 'dining table'),
                         help='comma-separated classes, cycled over the objects (default: chair,"dining table")')
@@ -90,7 +95,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help='white noise on published poses: rotation std (deg), translation std (m)')
     noise.add_argument('--pose-drift', type=_floats(2, '--pose-drift'), default=None, metavar='DEG,M',
                        help='random-walk drift of published poses: per-frame rotation (deg) and translation (m) '
-                            'std (per second of capture with --scene handheld)')
+                            'std (per second of capture with --scene handheld or insideout)')
     noise.add_argument('--image-noise', type=float, default=None, metavar='SIGMA',
                        help='Gaussian pixel noise std (0-255 scale)')
     noise.add_argument('--slam-texture', type=float, default=None, metavar='MIN',
@@ -103,7 +108,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     camera.add_argument('--sensor-noise', type=_floats(2, '--sensor-noise'), default=None, metavar='SHOT,READ',
                         help='Poisson-Gaussian noise: variance = SHOT * intensity + READ^2 (0-255 scale)')
     camera.add_argument('--motion-blur', type=float, default=None, metavar='S',
-                        help='exposure time (s) for motion blur (needs --scene handheld)')
+                        help='exposure time (s) for motion blur (needs --scene handheld or insideout)')
     camera.add_argument('--distortion', type=_floats(2, '--distortion'), default=None, metavar='K1,K2',
                         help='radial lens distortion applied to images, masks and depth, written to camera_info d '
                              '(the graph assumes undistorted images)')
@@ -142,7 +147,7 @@ def config_from_args(args: argparse.Namespace) -> SynthConfig:
         bleed_px=args.mask_bleed))
     pose = replace(base.pose_noise, **_given(rot_deg=pose_noise[0], trans_m=pose_noise[1],
                                              drift_rot_deg=pose_drift[0], drift_trans_m=pose_drift[1]))
-    if scene == 'handheld':
+    if scene in CONTINUOUS_PATHS:
         pose = replace(pose, drift_per_second=True)
     exposure, sensor = args.exposure or (None, None), args.sensor_noise or (None, None)
     capture = replace(base.capture, **_given(
@@ -166,8 +171,8 @@ def run(args: argparse.Namespace) -> int:
         config = config_from_args(args)
         if config.objects < 1 or config.frames < 1 or config.slam_every < 1:
             raise ValueError('--objects, --frames and --slam-every must be >= 1')
-        if config.capture.motion_blur_s > 0 and config.scene != 'handheld':
-            raise ValueError('--motion-blur needs --scene handheld (a continuous camera path)')
+        if config.capture.motion_blur_s > 0 and config.scene not in CONTINUOUS_PATHS:
+            raise ValueError('--motion-blur needs --scene handheld or insideout (a continuous camera path)')
     except ValueError as err:
         print(f'frodo synth: error: {err}', file=sys.stderr)
         return 2

@@ -11,7 +11,8 @@ the camera and sensor effects applied to each rendered frame (numpy / OpenCV, no
   exposure, radial lens distortion (images, masks and depth warped consistently; `d` in camera_info);
 - `kinect_depth`: Kinect-like depth noise and holes for the optional depth topic (CONTRACT v1.1);
 - `texture_strength`: how much texture a surface point has (sparse SLAM only finds landmarks there);
-- `PRESETS` / `preset_kwargs`: `clean` (today's defaults) and `handheld` (all conditions at realistic levels).
+- `PRESETS` / `preset_kwargs`: `clean` (today's defaults), `handheld` (all conditions at realistic levels) and
+  `realwalk` (the `handheld` conditions on an inside-out walk through the middle of a room, issue 27).
 """
 from __future__ import annotations
 
@@ -185,8 +186,12 @@ def texture_strength(material, points: np.ndarray, step: float = 0.01) -> np.nda
 
 # ---------------------------------------------------------------- presets
 def preset_kwargs(name: str) -> dict[str, Any]:
-    """SynthConfig keyword arguments of a preset: 'clean' (the defaults: exact masks, poses and images) or
-    'handheld' (every real-capture condition at realistic levels; see the README's table)."""
+    """SynthConfig keyword arguments of a preset: 'clean' (the defaults: exact masks, poses and images),
+    'handheld' (every real-capture condition at realistic levels; see the README's table) or 'realwalk' (the
+    'handheld' camera, detector and sensor conditions on the walk the real captures of issue 27 are: furniture
+    along the walls of a room, the camera walking through its middle looking outwards, `scene.InsideOutPath`,
+    35 keyframes over 35 s, nearly every chair pushed under a table on the side away from the camera, more
+    clutter on the tops)."""
     from frodo_datasets.degrade import MaskNoise, PoseNoise
     from frodo_datasets.render import Realism
 
@@ -203,7 +208,9 @@ def preset_kwargs(name: str) -> dict[str, Any]:
             capture=CaptureEffects(exposure_std=0.25, white_balance_std=0.04, vignetting=0.35, shot_noise=0.6,
                                    read_noise=2.0, motion_blur_s=1 / 30, hand_shake_dps=3.0, depth_noise=True),
             slam_texture_min=0.02, slam_density=200.0, slam_noise_m=0.015)
+    if name == 'realwalk':
+        return {**preset_kwargs('handheld'), 'scene': 'insideout', 'frames': 35, 'tuck_chairs': 0.9, 'clutter': 4}
     raise ValueError(f'unknown preset {name!r}; presets: {", ".join(PRESETS)}')
 
 
-PRESETS = ('clean', 'handheld')
+PRESETS = ('clean', 'handheld', 'realwalk')

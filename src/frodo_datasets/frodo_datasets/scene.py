@@ -8,6 +8,9 @@ separating-axis test with a clearance). Two camera trajectories, both optical-fr
 - `walk_trajectory`: ScanNet-like hand-held walk (~60 views) along a smooth open loop between the
   furniture and the walls, looking across the room at drifting targets, so objects occlude each other and
   leave the image at its borders.
+Two continuous hand-held paths (`pose(t)`, keyframes spread over the whole path): `HandheldPath` (close-range
+scan from object to object) and `InsideOutPath` (a slow walk through the middle of a 'perimeter' room,
+panning round at the furniture along the walls: what a person filming a room does).
 Everything is deterministic given the seed.
 """
 from __future__ import annotations
@@ -23,8 +26,10 @@ from frodo_common.geometry import look_at, make_transform, yaw_matrix
 from frodo_datasets.render import Material, RenderObject
 
 WALL_HEIGHT = 2.6
-LAYOUTS = ('walk', 'orbit')
-TRAJECTORIES = ('walk', 'orbit', 'handheld')
+LAYOUTS = ('walk', 'orbit', 'perimeter')
+TRAJECTORIES = ('walk', 'orbit', 'handheld', 'insideout')
+CONTINUOUS_PATHS = ('handheld', 'insideout')   # trajectories with a continuous `pose(t)` (motion blur, drift/s)
+SCENE_LAYOUT = {'walk': 'walk', 'orbit': 'orbit', 'handheld': 'walk', 'insideout': 'perimeter'}
 
 
 @dataclass
@@ -67,7 +72,9 @@ class SceneObject:
 @dataclass
 class Scene:
     """A room with furniture. room_size: (x extent, y extent) of the floor in metres; room: floor and wall
-    geometry (label 0); layout: 'walk' (furniture spread over the room) or 'orbit' (a small group at the centre)."""
+    geometry (label 0); layout: 'walk' (furniture spread over the room), 'orbit' (a small group at the centre) or
+    'perimeter' (furniture along the walls, the middle free); inner_size: the furniture area ('walk', 'orbit')
+    or the free middle ('perimeter')."""
 
     objects: list[SceneObject]
     room: list[RenderObject]
@@ -157,11 +164,13 @@ def compose_scene(n_objects: int = 3, classes: Sequence[str] = ('chair', 'dining
 
     layout 'walk': objects spread over an inner area of the room that grows with the object count, with a
     camera corridor between it and the walls; 'orbit': objects packed around the room centre (the first
-    object at the centre) so an orbit sees the group. Raises RuntimeError when the objects cannot be placed.
-    family_set: see `family_pool`. Real-capture options (off by default; they draw from their own random
-    streams, so a scene without them is unchanged): `tuck_chairs` is the probability that a chair is moved
-    to a table side and pushed under its top (`tuck_chair`); `clutter` is the number of unlabelled small
-    items (boxes, books, bottles, bowls) put on each table top (`add_clutter`).
+    object at the centre) so an orbit sees the group; 'perimeter': objects along the walls of a 5-6 x 4.5-5.5 m
+    room, the middle free for an inside-out walk (`_place_along_walls`). Raises RuntimeError when the objects
+    cannot be placed. family_set: see `family_pool`. Real-capture options (off by default; they draw from
+    their own random streams, so a scene without them is unchanged): `tuck_chairs` is the probability that a
+    chair is moved to a table side and pushed under its top (`tuck_chair`; in a 'perimeter' room never on the
+    side facing the room's middle, so the camera sees it behind the table); `clutter` is the number of
+    unlabelled small items (boxes, books, bottles, bowls) put on each table top (`add_clutter`).
     """
     from frodo_datasets.shapes import generate
 
@@ -179,6 +188,8 @@ def compose_scene(n_objects: int = 3, classes: Sequence[str] = ('chair', 'dining
         shapes.append((name, family, shape_seed, generate(name, shape_seed, family)))
     # Place the biggest footprints first so they find room.
     order = sorted(range(n_objects), key=lambda i: -np.prod(shapes[i][3].extents[:2]))
+    if layout == 'perimeter':
+        return _perimeter_scene(shapes, order, rng, int(seed), clearance, max_tries, tuck_chairs, clutter)
     area = sum(float(np.prod(s[3].extents[:2])) for s in shapes)
     if layout == 'walk':
         side = max(2.2, 1.25 * np.sqrt(3.5 * area))
@@ -225,6 +236,90 @@ def compose_scene(n_objects: int = 3, classes: Sequence[str] = ('chair', 'dining
                  (float(inner[0]), float(inner[1])))
 
 
+def _wall_frame(wall: int, half: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Wall 0..3 (+x, -x, +y, -y) of a room with half extents `half` (2,): the middle of the wall (2,), its
+    inward unit normal (2,) and its half length."""
+    normal = np.array([[-1.0, 0.0], [1.0, 0.0], [0.0, -1.0], [0.0, 1.0]][wall])
+    point = -normal * half
+    return point, normal, float(half[1] if wall < 2 else half[0])
+
+
+def _place_along_walls(shapes: list, order: list[int], rng: np.random.Generator, clearance: float,
+                       max_tries: int) -> tuple[dict[int, SceneObject], np.ndarray]:
+    """'perimeter' placement: a room of 5.2-6.4 x 4.4-5.4 m; each object against a random wall (biggest
+    first): tables with their long side along the wall, 0.55-0.9 m from it (room for a chair behind), chairs
+    0.05-0.35 m from it facing the room's middle +-35 degrees. Returns ({index: object}, room size (2,))."""
+    size = np.array([rng.uniform(6.0, 7.2), rng.uniform(5.0, 6.0)])
+    half = size / 2
+    placed: dict[int, SceneObject] = {}
+    for i in order:
+        name, family, shape_seed, mesh = shapes[i]
+        ext = mesh.extents[:2]
+        for _ in range(max_tries):
+            wall = int(rng.choice(4, p=np.r_[size[1], size[1], size[0], size[0]] / (2 * size.sum())))
+            point, inward, wall_half = _wall_frame(wall, half)
+            along = np.array([-inward[1], inward[0]])
+            if name == 'dining table':
+                long_axis = 0 if ext[0] >= ext[1] else 1   # the table's long side runs along the wall
+                yaw = np.arctan2(along[1], along[0]) - long_axis * np.pi / 2 + np.radians(rng.uniform(-6, 6))
+                gap = rng.uniform(0.55, 0.9)
+            else:
+                yaw = np.arctan2(inward[1], inward[0]) + np.radians(rng.uniform(-35, 35))
+                gap = rng.uniform(0.05, 0.35)
+            c, s_ = abs(np.cos(yaw)), abs(np.sin(yaw))
+            footprint_half = np.array([c * ext[0] + s_ * ext[1], s_ * ext[0] + c * ext[1]]) / 2   # world x, y
+            depth = footprint_half @ np.abs(inward)
+            width = footprint_half @ np.abs(along)
+            slack = wall_half - 0.25 - width
+            if slack <= 0:
+                continue
+            xy = point + inward * (gap + depth) + along * rng.uniform(-slack, slack)
+            T = make_transform(yaw_matrix(yaw), (xy[0], xy[1], -mesh.bounds[0, 2]))
+            obj = SceneObject(i + 1, name, category_by_name(name).coco_id, mesh, T, Material.random(rng), family,
+                              shape_seed)
+            if not any(footprints_overlap(obj.footprint, o.footprint, clearance) for o in placed.values()):
+                placed[i] = obj
+                break
+        else:
+            raise RuntimeError(f'could not place {len(shapes)} objects along the walls without overlap; '
+                               f'try fewer objects or another seed')
+    return placed, size
+
+
+def _perimeter_scene(shapes: list, order: list[int], rng: np.random.Generator, seed: int, clearance: float,
+                     max_tries: int, tuck_chairs: float, clutter: int) -> Scene:
+    """compose_scene's 'perimeter' layout: `_place_along_walls`, chairs tucked under tables on a side away
+    from the room's middle (the far or a lateral side, the far one twice as often), clutter on the tops."""
+    placed, size = _place_along_walls(shapes, order, rng, clearance, max_tries)
+    objects = [placed[i] for i in range(len(shapes))]
+    if tuck_chairs > 0:
+        tuck_rng = np.random.default_rng([seed, 11])
+        tables = [o for o in objects if o.class_name == 'dining table']
+        for chair in [o for o in objects if o.class_name == 'chair']:
+            if tables and tuck_rng.random() < tuck_chairs:
+                table = tables[int(tuck_rng.integers(len(tables)))]
+                to_middle = -table.T_world_object[:2, 3] @ table.T_world_object[:2, :2]   # in the table frame
+                facing = np.array([[1, 0], [-1, 0], [0, 1], [0, -1]], float) @ to_middle
+                near, far = int(np.argmax(facing)), int(np.argmin(facing))
+                sides = [far] + [s for s in range(4) if s != near]
+                tucked = tuck_chair(chair, table, [o for o in objects if o is not chair], tuck_rng, sides=sides,
+                                    bounds=size / 2 - 0.05)
+                if tucked is not None:
+                    chair.T_world_object = tucked
+    room = _room_geometry(size[0], size[1], rng)
+    if clutter > 0:
+        room += add_clutter(objects, clutter, np.random.default_rng([seed, 12]))
+    # the free middle: the room less, on every side, the deepest reach of furniture from its nearest wall
+    band = 0.0
+    for o in objects:
+        corners = np.abs(o.footprint)
+        axis = int(np.argmin(size / 2 - np.abs(o.T_world_object[:2, 3])))
+        band = max(band, float(size[axis] / 2 - corners[:, axis].min()))
+    free = np.clip(size - 2 * band, 0.0, None)
+    return Scene(objects, room, (float(size[0]), float(size[1])), 'perimeter', seed,
+                 (float(free[0]), float(free[1])))
+
+
 # ---------------------------------------------------------------- real-capture arrangements
 def _manifold(mesh: trimesh.Trimesh):
     from manifold3d import Manifold, Mesh
@@ -238,10 +333,13 @@ def _intersection_volume(a: trimesh.Trimesh, b: trimesh.Trimesh) -> float:
 
 
 def tuck_chair(chair: SceneObject, table: SceneObject, others: Sequence[SceneObject], rng: np.random.Generator,
-               clearance: float = 0.05) -> np.ndarray | None:
+               clearance: float = 0.05, sides: Sequence[int] | None = None,
+               bounds: np.ndarray | None = None) -> np.ndarray | None:
     """A pose (4, 4) that puts `chair` at a random side of `table`, facing it (+-10 degrees), pushed as far
     under the top as it goes without touching the table (exact mesh intersection, bisection on the push
     depth) times a random 40-100 %, clear of `others`' footprints. None if no side works (8 tries).
+    sides: the table sides to draw from (0..3: +x, -x, +y, -y of the table frame; default all, uniformly);
+    bounds: (2,) half extents the chair's footprint must stay within (the room's walls; default none).
 
     This is the arrangement real rooms have and the plain layouts lack: the seat and legs hidden under
     the table top, the chair back against its edge.
@@ -250,7 +348,8 @@ def tuck_chair(chair: SceneObject, table: SceneObject, others: Sequence[SceneObj
     t_half = table.mesh.extents[:2] / 2
     c_half = chair.mesh.extents[:2] / 2
     for _ in range(8):
-        side = int(rng.integers(4))  # +x, -x, +y, -y side of the table, in the table frame
+        # +x, -x, +y, -y side of the table, in the table frame
+        side = int(rng.integers(4)) if sides is None else int(sides[int(rng.integers(len(sides)))])
         axis = np.array([[1, 0], [-1, 0], [0, 1], [0, -1]][side], float)
         along = np.array([-axis[1], axis[0]])
         span = max(0.0, t_half @ np.abs(along) - c_half[1])
@@ -276,6 +375,8 @@ def tuck_chair(chair: SceneObject, table: SceneObject, others: Sequence[SceneObj
             lo, hi = (mid, hi) if free(mid) else (lo, mid)
         T = pose(lo * rng.uniform(0.4, 1.0))
         candidate = SceneObject(chair.id, chair.class_name, chair.coco_id, chair.mesh, T, chair.material)
+        if bounds is not None and np.any(np.abs(candidate.footprint) > bounds):
+            continue
         if not any(footprints_overlap(candidate.footprint, o.footprint, clearance) for o in others if o is not table):
             return T
     return None
@@ -505,12 +606,76 @@ class HandheldPath:
         return [self.pose(t) for t in self.keyframe_times(n_frames, seed)]
 
 
+class InsideOutPath(HandheldPath):
+    """Inside-out walk through the middle of a room looking outwards (issue 27), what a person filming a room
+    does and what the real captures the project failed on look like: the body walks slowly (`walk_m` in all)
+    along the room's long axis through its middle, swaying a little sideways, while the camera, held `lever`
+    m in front of the body at eye height `height`, pans round at the furniture along the walls, tilted down
+    by `pitch_deg`. The pan is one sweep in one direction (`sweep_deg` in all: with a 60-degree field of view
+    every wall comes into view once; the headings it leaves out face the widest stretch of wall without
+    furniture) at an angular speed that changes every `segment_s` seconds (log-normal, spread `turn_sigma`: a
+    pause here, a quick turn there), with an occasional slower turn back (`back_rate` of the segments).
+    Keyframes spread evenly over `duration_s` (the base class's `keyframe_times`) are then rotation-dominated
+    and narrow-baseline: at 35 keyframes a median turn of ~8 degrees (90th percentile ~18) and a median
+    baseline of ~8 cm between consecutive ones, and each object is in view in a handful of them, from one
+    side (`capture_stats`). Continuous in time like `HandheldPath` (`pose(t)`: motion blur; the hand roll and
+    stepping over furniture are the base class's).
+    """
+
+    def __init__(self, scene: Scene, seed: int = 0, duration_s: float = 35.0,
+                 sweep_deg: tuple[float, float] = (270.0, 310.0), turn_sigma: float = 0.8, back_rate: float = 0.08,
+                 segment_s: float = 1.0, walk_m: tuple[float, float] = (2.0, 3.4), sway_m: float = 0.15,
+                 lever: float = 0.35, height: tuple[float, float] = (1.3, 1.6),
+                 pitch_deg: tuple[float, float] = (-28.0, -12.0)):
+        from scipy.interpolate import PchipInterpolator
+
+        rng = np.random.default_rng(seed)
+        self.scene = scene
+        self.duration = float(duration_s)
+        n = max(2, int(round(duration_s / segment_s)))
+        times = np.linspace(0.0, self.duration, n + 1)
+        u = times / self.duration
+        speed = np.exp(rng.normal(0.0, turn_sigma, n)) * np.where(rng.random(n) < back_rate, -0.5, 1.0)
+        sweep = np.radians(rng.uniform(*sweep_deg)) * rng.choice([-1.0, 1.0])
+        # start so that the headings the sweep leaves out face the widest stretch of wall without furniture
+        bearing = np.sort([np.arctan2(o.T_world_object[1, 3], o.T_world_object[0, 3]) for o in scene.objects])
+        gaps = np.diff(np.concatenate([bearing, [bearing[0] + 2 * np.pi]]))
+        bare = bearing[int(np.argmax(gaps))] + gaps.max() / 2 + np.radians(rng.uniform(-10, 10))
+        start = bare - np.sign(sweep) * (np.pi + abs(sweep) / 2)
+        heading = start + sweep * np.concatenate([[0.0], np.cumsum(speed)]) / speed.sum()
+        pitch = np.radians(np.clip(np.mean(pitch_deg) + _smooth_noise(rng, u, (pitch_deg[1] - pitch_deg[0]) / 3),
+                                   *pitch_deg))
+        z = np.clip(np.mean(height) + _smooth_noise(rng, u, (height[1] - height[0]) / 4), *height)
+        long_axis = int(np.argmax(scene.room_size))
+        walk = min(rng.uniform(*walk_m), max(0.4, scene.inner_size[long_axis] - lever))
+        body = np.tile(rng.uniform(-0.2, 0.2, 2), (n + 1, 1))
+        body[:, long_axis] += rng.choice([-1.0, 1.0]) * walk * (u - 0.5)
+        body[:, 1 - long_axis] += _smooth_noise(rng, u, sway_m, harmonics=2)
+        look = np.stack([np.cos(pitch) * np.cos(heading), np.cos(pitch) * np.sin(heading), np.sin(pitch)], axis=1)
+        eyes = np.concatenate([body + lever * look[:, :2] / np.linalg.norm(look[:, :2], axis=1, keepdims=True),
+                               z[:, None]], axis=1)
+        half = np.asarray(scene.room_size) / 2 - 0.3
+        eyes[:, :2] = np.clip(eyes[:, :2], -half, half)
+        self._eye = PchipInterpolator(times, eyes)
+        self._target = PchipInterpolator(times, eyes + 2.0 * look)
+        self._roll = (rng.normal(0, 2.0, 4), rng.uniform(0, 2 * np.pi, 4))
+
+
+def continuous_path(scene: Scene, kind: str, seed: int = 0) -> HandheldPath:
+    """The continuous path of a `CONTINUOUS_PATHS` trajectory: `HandheldPath` or `InsideOutPath`."""
+    if kind == 'handheld':
+        return HandheldPath(scene, seed)
+    if kind == 'insideout':
+        return InsideOutPath(scene, seed)
+    raise ValueError(f'no continuous path for trajectory {kind!r}; continuous ones: {CONTINUOUS_PATHS}')
+
+
 def trajectory(scene: Scene, kind: str, n_frames: int, seed: int = 0, hfov_deg: float = 60.0) -> list[np.ndarray]:
-    """`orbit_trajectory`, `walk_trajectory` or the keyframes of a `HandheldPath` by name."""
+    """`orbit_trajectory`, `walk_trajectory` or the keyframes of a `HandheldPath` / `InsideOutPath` by name."""
     if kind == 'orbit':
         return orbit_trajectory(scene, n_frames, seed, hfov_deg=hfov_deg)
     if kind == 'walk':
         return walk_trajectory(scene, n_frames, seed)
-    if kind == 'handheld':
-        return HandheldPath(scene, seed).keyframes(n_frames, seed)
+    if kind in CONTINUOUS_PATHS:
+        return continuous_path(scene, kind, seed).keyframes(n_frames, seed)
     raise ValueError(f'trajectory kind must be one of {TRAJECTORIES}, got {kind!r}')

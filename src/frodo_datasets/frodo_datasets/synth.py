@@ -34,7 +34,8 @@ from frodo_datasets.degrade import MaskNoise, PoseNoise, PoseNoiser, add_image_n
 from frodo_datasets.realcapture import (CaptureEffects, blur_vector, distort, distortion_maps, kinect_depth,
                                         motion_blur, photometric, shaken_pose, texture_strength)
 from frodo_datasets.render import Light, Realism, Renderer, intrinsics
-from frodo_datasets.scene import HandheldPath, Scene, compose_scene, trajectory
+from frodo_datasets.scene import (CONTINUOUS_PATHS, SCENE_LAYOUT, HandheldPath, Scene, compose_scene,
+                                  continuous_path, trajectory)
 
 DEPTH_TOPIC = '/camera/depth/image_raw'   # CONTRACT v1.1: the graph's nodes listen here
 CAMERA_FRAME = 'camera_color_optical_frame'
@@ -46,8 +47,9 @@ SIDECAR_SUFFIX = '.gt.json'
 class SynthConfig:
     """What to synthesise.
 
-    scene: trajectory and layout, 'walk' (room walk), 'orbit' (object-centric loop) or 'handheld' (walk
-      layout, close-range hand-held scan with the frames spread over a long path: `scene.HandheldPath`).
+    scene: trajectory and layout, 'walk' (room walk), 'orbit' (object-centric loop), 'handheld' (walk
+      layout, close-range hand-held scan with the frames spread over a long path: `scene.HandheldPath`) or
+      'insideout' (perimeter layout, a walk through the room's middle looking outwards: `scene.InsideOutPath`).
     min_mask_pixels: visible object parts smaller than this are not reported as instances.
     slam_density: landmarks per m² of object surface (room surfaces get a twentieth of it).
     slam_noise_m: std of the fixed per-landmark position error.
@@ -181,14 +183,14 @@ def synthesize(config: SynthConfig, out_path: str | Path, progress: Callable[[in
     out_path = Path(out_path)
     rng = np.random.default_rng(config.seed)
     if scene is None:
-        layout = 'walk' if config.scene == 'handheld' else config.scene
+        layout = SCENE_LAYOUT.get(config.scene, config.scene)
         scene = compose_scene(config.objects, config.classes, seed=config.seed, layout=layout,
                               family_set=config.family_set, tuck_chairs=config.tuck_chairs, clutter=config.clutter)
     path = None
     times = np.arange(config.frames) / config.fps
     if poses is None:
-        if config.scene == 'handheld':
-            path = HandheldPath(scene, seed=config.seed + 1)
+        if config.scene in CONTINUOUS_PATHS:
+            path = continuous_path(scene, config.scene, seed=config.seed + 1)
             times = path.keyframe_times(config.frames, seed=config.seed + 1)
             poses = [path.pose(t) for t in times]
         else:
@@ -279,14 +281,15 @@ def sidecar_path(bag_path: str | Path) -> Path:
 def write_sidecar(path: Path, config: SynthConfig, scene: Scene, K: np.ndarray, stamps: list[int],
                   true_poses: list[np.ndarray], published: list[np.ndarray], times: np.ndarray | None = None) -> None:
     """Ground-truth JSON: generation config, scene (objects, poses, shapes), intrinsics, per-frame poses
-    (and, for hand-held paths, the capture time of each keyframe in seconds along the path)."""
+    (and, for continuous paths (`scene.CONTINUOUS_PATHS`), the capture time of each keyframe in seconds along
+    the path)."""
     doc = {
         'config': asdict(config), 'scene': scene.to_dict(),
         'camera': {'K': K.tolist(), 'width': config.width, 'height': config.height, 'frame_id': CAMERA_FRAME},
         'frames': [{'stamp_ns': s, 'T_world_camera': T.tolist(), 'T_world_camera_published': P.tolist()}
                    for s, T, P in zip(stamps, true_poses, published)],
     }
-    if config.scene == 'handheld' and times is not None:
+    if config.scene in CONTINUOUS_PATHS and times is not None:
         for frame, t in zip(doc['frames'], times):
             frame['capture_time_s'] = float(t)
     path.write_text(json.dumps(doc, indent=1) + '\n')
