@@ -18,6 +18,8 @@ The sets (`REPORT_SETS`):
   7301-7304) of shape families no prior was trained on;
 - `realcapture`: the held-out real-capture set (`frodo_datasets.eval_sets`, `realcapture`, variant `full`:
   12 rooms, 35 keyframes of a hand-held path with every real-capture condition);
+- `realwalk`: the held-out inside-out walks (`frodo_datasets.eval_sets`, `realwalk`, variant `full`: 12 rooms,
+  35 keyframes of a walk through the middle of a room looking outwards, held-out designs; issue 27);
 - `public-real`: bags built from public real furniture models and real camera paths
   (`scripts/build_real_bags.sh` -> `data/real/build/*.mcap`); left out, with the build command on the page,
   when they have not been built.
@@ -79,6 +81,11 @@ def _realcapture(work: Path) -> list[Path]:
     return eval_sets.build(eval_sets.SETS['realcapture'], work / 'realcapture', ['full'])
 
 
+def _realwalk(work: Path) -> list[Path]:
+    from frodo_datasets import eval_sets
+    return eval_sets.build(eval_sets.SETS['realwalk'], work / 'realwalk', ['full'])
+
+
 def _public_real(_: Path) -> list[Path]:
     return sorted(PUBLIC_REAL_DIR.glob('*.mcap'))
 
@@ -96,6 +103,12 @@ REPORT_SETS: dict[str, ReportSet] = {s.name: s for s in (
               '`full`): 12 synthetic rooms, 35 keyframes of a hand-held path with motion blur, exposure, sensor '
               'noise, detector-like masks, pose drift, sparse textured landmarks, tucked chairs and clutter.',
               _realcapture),
+    ReportSet('realwalk', 'Inside-out walks, held out',
+              'The held-out inside-out walks (`python -m frodo_datasets.eval_sets build realwalk`, variant `full`): '
+              '12 synthetic rooms with furniture along the walls, 35 keyframes of a walk through the middle looking '
+              'outwards (rotation-dominated, narrow baseline: each object seen from one side in a few keyframes), '
+              'chairs behind tables, held-out designs, and the real-capture conditions of `realcapture`.',
+              _realwalk),
     ReportSet('public-real', 'Public real furniture on real camera paths',
               'Real furniture models in their real arrangement rendered along a real hand-held trajectory '
               '(TUM fr1/xyz); provenance in data/real/README.md.', _public_real,

@@ -1,9 +1,10 @@
 """Real-capture evaluation and tuning sets: build the bags, run the graph on them, pool the scores.
 
     python -m frodo_datasets.eval_sets build realcapture OUT [--variants full,full100] [--scenes 0-11]
-    python -m frodo_datasets.eval_sets run   realcapture OUT [--variants full] [--rate 1]
+    python -m frodo_datasets.eval_sets run   realcapture OUT [--variants full] [--runner reconstruct|run]
     python -m frodo_datasets.eval_sets table realcapture OUT [--markdown]
     python -m frodo_datasets.eval_sets families realcapture OUT --variants full   # seen vs held-out designs
+    python -m frodo_datasets.eval_sets stats realwalk OUT                          # how the bags see their objects
 
 Disjoint sets of rooms (issue 9), all in the `handheld` real-capture regime (`realcapture`):
 - `realcapture` (HELD OUT, for reporting only): 12 rooms, seeds 9100-9111, 3 or 4 objects each (42 in
@@ -19,8 +20,17 @@ Disjoint sets of rooms (issue 9), all in the `handheld` real-capture regime (`re
   `furniture_broad`, which trains on them).
 Never tune on `realcapture`; report on it.
 
-Variants (`VARIANTS`) are the same rooms under different conditions: `full` (every condition, 35
-keyframes), `full100` (every condition, 100 views), and one condition at a time on top of `plain` (the
+Inside-out walks (issue 27: the `realcapture` set scores recall ~98 % while real walks find a third of the
+objects), in the `realwalk` regime (`realcapture.preset_kwargs('realwalk')`: the `handheld` conditions on a
+walk through the middle of a room looking outwards, `scene.InsideOutPath`), 4 or 5 objects per room (1-2
+tables and 3 chairs, nearly every chair pushed under a table on the side away from the camera):
+- `realwalk` (HELD OUT, for reporting only): 12 rooms, seeds 9200-9211, 54 objects, held-out families only
+  (`shapes.eval_families`);
+- `realwalk-tune` (for tuning): 12 rooms, seeds 8400-8411, training families only.
+
+Variants (`VARIANTS`) are the same rooms under different conditions: `full` (every condition of the set's
+preset, `EvalSet.preset`: `handheld` or `realwalk`, 35 keyframes), `full100` (the same, 100 views), and one
+condition of the `handheld` preset at a time on top of `plain` (the
 project's usual regime: a room walk of 60 consecutive clean frames): `truncation` (close-range hand-held
 path, 100 views, clean), `keyframes` (the same path at 35 keyframes), `occlusion` (chairs pushed under
 tables, clutter on tables), `masks` (detector-like mask errors), `drift` (pose noise and drift), `landmarks`
@@ -29,9 +39,13 @@ ambient occlusion, soft shadows, specular highlights).
 
 Bags are not committed; `build` regenerates them deterministically (same seed -> same scene and frames),
 each with its `.gt.json` sidecar (true object and camera poses; never read by the graph).
-`run` calls `frodo run` on every bag that has no result yet (results/<variant>/<scene>.json, so an
-interrupted run keeps what it finished) and scores it with the contract protocol; `table` pools them:
-recall, false positives per scene, median centre error, mean CD and F1@5cm of the matched objects.
+`run` reconstructs every bag that has no result yet (results/<variant>/<scene>.json, so an interrupted run
+keeps what it finished; the runner is recorded in the result) and scores it with the contract protocol:
+`--runner reconstruct` (the default) is the offline pipeline `frodo reconstruct` (deterministic, one process,
+about twice as fast), `--runner run` the live graph `frodo run` (`--rate`, `--timeout`). `table` pools them:
+recall, false positives per scene, median centre error, mean CD and F1@5cm of the matched objects. `stats`
+pools `frodo_datasets.capture_stats` over the built bags (keyframes in view per object, viewing-angle
+spread, detections cut by a nearer object, turn and baseline between keyframes).
 """
 from __future__ import annotations
 
@@ -52,17 +66,22 @@ from frodo_datasets.realcapture import preset_kwargs
 from frodo_datasets.synth import SynthConfig, sidecar_path, synthesize
 
 CLASSES = ('dining table', 'chair', 'chair')  # cycled: 3 objects = 1 table + 2 chairs, 4 = 2 + 2
+WALK_CLASSES = ('dining table', 'chair', 'chair', 'chair')  # 4 objects = 1 table + 3 chairs, 5 = 2 + 3
+RUNNERS = ('reconstruct', 'run')
 
 
 @dataclass(frozen=True)
 class EvalSet:
-    """A named set of rooms: seeds, object counts and the shape families they draw from."""
+    """A named set of rooms: seeds, object counts, the shape families they draw from, the classes cycled over
+    the objects and the `frodo synth` preset of its `full` and `full100` variants."""
 
     name: str
     seeds: tuple[int, ...]
     objects: tuple[int, ...]
     family_set: str
     purpose: str
+    preset: str = 'handheld'
+    classes: tuple[str, ...] = CLASSES
 
     def scenes(self) -> list[tuple[str, int, int]]:
         """(scene name, seed, object count) per room."""
@@ -79,6 +98,12 @@ SETS: dict[str, EvalSet] = {
     'realcapture-tune3': EvalSet('realcapture-tune3', tuple(range(8300, 8318)), tuple(3 + i % 2 for i in range(18)),
                                  'extra', 'tuning, third set (training and extra families: designs the default '
                                  'prior has not seen)'),
+    'realwalk': EvalSet('realwalk', tuple(range(9200, 9212)), tuple(4 + i % 2 for i in range(12)), 'heldout',
+                        'held-out evaluation of inside-out walks (issue 27): report only, never tune',
+                        preset='realwalk', classes=WALK_CLASSES),
+    'realwalk-tune': EvalSet('realwalk-tune', tuple(range(8400, 8412)), tuple(4 + i % 2 for i in range(12)), 'train',
+                             'tuning on inside-out walks (training families only)', preset='realwalk',
+                             classes=WALK_CLASSES),
 }
 
 _HANDHELD = preset_kwargs('handheld')
@@ -111,9 +136,15 @@ VARIANTS: dict[str, Callable[[SynthConfig], SynthConfig]] = {
 }
 
 
+PRESET_VARIANTS = {'full': None, 'full100': 100}   # variant -> frames (None: the preset's) on the set's preset
+
+
 def scene_config(eval_set: EvalSet, seed: int, objects: int, variant: str) -> SynthConfig:
-    """SynthConfig of one room of `eval_set` under `variant`."""
-    base = SynthConfig(objects=objects, classes=CLASSES, seed=seed, family_set=eval_set.family_set)
+    """SynthConfig of one room of `eval_set` under `variant` (`full`, `full100`: the set's preset)."""
+    base = SynthConfig(objects=objects, classes=eval_set.classes, seed=seed, family_set=eval_set.family_set)
+    if variant in PRESET_VARIANTS:
+        frames = PRESET_VARIANTS[variant]
+        return replace(base, **{**preset_kwargs(eval_set.preset), **({'frames': frames} if frames else {})})
     return VARIANTS[variant](base)
 
 
@@ -166,13 +197,34 @@ def score(pred_dir: Path, bag: Path) -> dict:
     return evaluate(pred, gt).to_dict()
 
 
-def run(eval_set: EvalSet, out: Path, variants: list[str], scenes: str | None = None, rate: float = 1.0,
-        params: list[str] | None = None, timeout: float = 300.0, code: Path | None = None) -> None:
-    """`frodo run` + scoring on every built bag without a result yet; writes results/<variant>/<scene>.json.
+def runner_command(runner: str, bag: Path, pred_dir: Path, params: list[str] | None = None, rate: float = 1.0,
+                   timeout: float = 300.0) -> list[str]:
+    """The command line that reconstructs `bag` into `pred_dir`: `frodo reconstruct` (runner 'reconstruct', the
+    offline pipeline; rate and timeout do not apply) or `frodo run` (runner 'run', the live graph)."""
+    if runner == 'reconstruct':
+        command = [*_frodo(), 'reconstruct', str(bag), '--out', str(pred_dir), '--quiet']
+    elif runner == 'run':
+        command = [*_frodo(), 'run', str(bag), '--out', str(pred_dir), '--rate', str(rate), '--no-progress',
+                   '--timeout', str(timeout)]
+    else:
+        raise ValueError(f'runner must be one of {RUNNERS}, got {runner!r}')
+    for p in params or []:
+        command += ['--params', p]
+    return command
 
-    code: run the graph from this source tree (its src/frodo_* packages first on PYTHONPATH, e.g. a
-    `git archive` of the commit to measure) instead of the installed packages.
+
+def run(eval_set: EvalSet, out: Path, variants: list[str], scenes: str | None = None, rate: float = 1.0,
+        params: list[str] | None = None, timeout: float = 300.0, code: Path | None = None,
+        runner: str = 'reconstruct') -> None:
+    """Reconstruction + scoring of every built bag without a result yet; writes results/<variant>/<scene>.json.
+
+    runner: 'reconstruct' (`frodo reconstruct`, the offline pipeline: deterministic, about twice as fast; the
+    default) or 'run' (`frodo run`, the live graph, with `rate` and `timeout`); see `runner_command`.
+    code: run from this source tree (its src/frodo_* packages first on PYTHONPATH, e.g. a `git archive` of
+    the commit to measure) instead of the installed packages.
     """
+    if runner not in RUNNERS:
+        raise ValueError(f'runner must be one of {RUNNERS}, got {runner!r}')
     env = os.environ.copy()
     if code is not None:
         packages = sorted(str(p) for p in (Path(code) / 'src').glob('frodo_*') if p.is_dir())
@@ -186,23 +238,21 @@ def run(eval_set: EvalSet, out: Path, variants: list[str], scenes: str | None = 
             if result_path.is_file() or not bag.is_file():
                 continue
             pred_dir = out / 'runs' / variant / scene
-            command = [*_frodo(), 'run', str(bag), '--out', str(pred_dir), '--rate', str(rate), '--no-progress',
-                       '--timeout', str(timeout)]
-            for p in params or []:
-                command += ['--params', p]
+            command = runner_command(runner, bag, pred_dir, params, rate, timeout)
             started = time.monotonic()
             proc = subprocess.run(command, capture_output=True, text=True, env=env)
             seconds = time.monotonic() - started
             if pred_dir.is_dir():
-                (pred_dir / 'frodo_run.log').write_text(proc.stdout + proc.stderr)
+                (pred_dir / f'frodo_{runner}.log').write_text(proc.stdout + proc.stderr)
             if not (pred_dir / 'objects.json').is_file():
-                print(f'{scene} [{variant}]: frodo run wrote no outputs (exit {proc.returncode}):\n'
+                print(f'{scene} [{variant}]: frodo {runner} wrote no outputs (exit {proc.returncode}):\n'
                       f'{(proc.stdout + proc.stderr)[-2000:]}', file=sys.stderr, flush=True)
                 continue
-            # Not done in time (exit 3) or nodes stopped by force (exit 1): the outputs written so far are
-            # what a user would get; scored, and the exit code is kept with the result.
+            # frodo run not done in time (exit 3) or nodes stopped by force (exit 1): the outputs written so far
+            # are what a user would get; scored, and the exit code is kept with the result.
             report = score(pred_dir, bag)
-            report['run'] = {'exit_code': proc.returncode, 'seconds': seconds, 'rate': rate,
+            report['run'] = {'runner': runner, 'exit_code': proc.returncode, 'seconds': seconds,
+                             **({'rate': rate} if runner == 'run' else {}),
                              'code': str(code) if code is not None else 'installed'}
             result_path.parent.mkdir(parents=True, exist_ok=True)
             result_path.write_text(json.dumps(report, indent=1) + '\n')
@@ -210,6 +260,11 @@ def run(eval_set: EvalSet, out: Path, variants: list[str], scenes: str | None = 
             print(f'{scene} [{variant}]: {o["n_matched"]}/{o["n_gt"]} found, {o["false_positives"]} FP, '
                   f'F1 {o["f1"] if o["f1"] is not None else float("nan"):.1f}, {seconds:.0f} s, '
                   f'exit {proc.returncode}', flush=True)
+
+
+def _live(report: dict) -> bool:
+    """The result came from `frodo run` (exit codes 1 and 3 mean a forced stop and a timeout only there)."""
+    return 'run' in report and report['run'].get('runner', 'run') == 'run'
 
 
 def pool(reports: list[dict]) -> dict:
@@ -221,8 +276,8 @@ def pool(reports: list[dict]) -> dict:
     f1 = [p['f1'] for p in pairs]
     return {
         'scenes': len(reports), 'objects': n_gt, 'found': len(pairs),
-        'timed_out': sum(r.get('run', {}).get('exit_code', 0) == 3 for r in reports),
-        'forced_stop': sum(r.get('run', {}).get('exit_code', 0) == 1 for r in reports),
+        'timed_out': sum(_live(r) and r['run'].get('exit_code', 0) == 3 for r in reports),
+        'forced_stop': sum(_live(r) and r['run'].get('exit_code', 0) == 1 for r in reports),
         'recall': 100.0 * len(pairs) / n_gt if n_gt else 0.0,
         'fp_per_scene': fp / len(reports) if reports else 0.0,
         'median_centre_cm': 100.0 * float(np.median([p['centroid_distance_m'] for p in pairs])) if pairs else None,
@@ -265,7 +320,7 @@ def family_table(eval_set: EvalSet, out: Path, variant: str) -> str:
     """Recall, mean F1@5cm and CD of one variant's results split by class and by family kind: training, extra
     (the broader prior's, unseen by the default one) or held-out (the room's objects are recomposed from the
     seeds; nothing is rendered)."""
-    from frodo_datasets.scene import compose_scene
+    from frodo_datasets.scene import SCENE_LAYOUT, compose_scene
     from frodo_datasets.shapes import eval_families, extra_families
 
     groups: dict[tuple[str, str], list] = {}
@@ -275,7 +330,8 @@ def family_table(eval_set: EvalSet, out: Path, variant: str) -> str:
             continue
         pairs = {p['gt_id']: p for p in json.loads(path.read_text())['pairs']}
         config = scene_config(eval_set, seed, n, variant)
-        room = compose_scene(config.objects, config.classes, seed=config.seed, family_set=config.family_set)
+        room = compose_scene(config.objects, config.classes, seed=config.seed, family_set=config.family_set,
+                             layout=SCENE_LAYOUT.get(config.scene, config.scene))
         for o in room.objects:
             kind = ('held-out' if o.family in eval_families(o.class_name)
                     else 'extra' if o.family in extra_families(o.class_name) else 'training')
@@ -289,20 +345,39 @@ def family_table(eval_set: EvalSet, out: Path, variant: str) -> str:
     return '\n'.join(lines)
 
 
+def stats_table(eval_set: EvalSet, out: Path, variants: list[str], scenes: str | None = None) -> str:
+    """Markdown table of `capture_stats.pool_statistics` over the set's built bags, one row per variant
+    (`<set> <variant>`; variants without bags are left out)."""
+    from frodo_datasets import capture_stats
+
+    rows = []
+    for variant in variants:
+        bags = [bag_path(out, variant, scene) for scene, _, _ in _select(eval_set.scenes(), scenes)]
+        bags = [b for b in bags if b.is_file()]
+        if bags:
+            pooled = capture_stats.pool_statistics([capture_stats.bag_statistics(b) for b in bags])
+            rows.append(capture_stats.markdown_row(f'`{eval_set.name}` {variant}', pooled))
+    return '\n'.join(capture_stats.table_header() + rows)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog='python -m frodo_datasets.eval_sets', description=__doc__.splitlines()[0])
-    parser.add_argument('command', choices=('build', 'run', 'table', 'families', 'list'))
+    parser.add_argument('command', choices=('build', 'run', 'table', 'families', 'stats', 'list'))
     parser.add_argument('set', choices=tuple(SETS))
     parser.add_argument('out', type=Path, nargs='?', default=Path('out/eval_sets'))
     parser.add_argument('--variants', default='full', help=f'comma-separated, from: {", ".join(VARIANTS)} (or "all")')
     parser.add_argument('--scenes', default=None, help="room indices, e.g. '0-3,7' (default: all)")
-    parser.add_argument('--rate', type=float, default=1.0, help='playback rate of frodo run (default 1; 0 drops '
-                        'frames on a loaded machine)')
-    parser.add_argument('--params', action='append', default=[], help='parameter YAML for frodo run (repeatable)')
+    parser.add_argument('--runner', choices=RUNNERS, default='reconstruct',
+                        help='run: reconstruct (`frodo reconstruct`, offline, deterministic, about twice as fast; '
+                             'default) or run (`frodo run`, the live graph)')
+    parser.add_argument('--rate', type=float, default=1.0, help='--runner run: playback rate of frodo run (default 1; '
+                        '0 drops frames on a loaded machine)')
+    parser.add_argument('--params', action='append', default=[], help='parameter YAML or preset (repeatable)')
     parser.add_argument('--timeout', type=float, default=300.0,
-                        help='frodo run --timeout: seconds to wait for the graph after the bag (default 300)')
+                        help='--runner run: frodo run --timeout, seconds to wait for the graph after the bag '
+                             '(default 300)')
     parser.add_argument('--code', type=Path, default=None,
-                        help='source tree to run the graph from (e.g. `git archive HEAD src | tar -x -C DIR`)')
+                        help='source tree to run the method from (e.g. `git archive HEAD src | tar -x -C DIR`)')
     parser.add_argument('--markdown', action='store_true', help='table as Markdown')
     args = parser.parse_args(argv)
     eval_set = SETS[args.set]
@@ -312,12 +387,14 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f'unknown variants {unknown}; known: {", ".join(VARIANTS)}')
     if args.command == 'list':
         for scene, seed, n in eval_set.scenes():
-            print(f'{scene}: seed {seed}, {n} objects, families {eval_set.family_set}')
+            print(f'{scene}: seed {seed}, {n} objects, families {eval_set.family_set}, preset {eval_set.preset}')
         print(f'purpose: {eval_set.purpose}')
     elif args.command == 'build':
         build(eval_set, args.out, variants, args.scenes)
     elif args.command == 'run':
-        run(eval_set, args.out, variants, args.scenes, args.rate, args.params, args.timeout, args.code)
+        run(eval_set, args.out, variants, args.scenes, args.rate, args.params, args.timeout, args.code, args.runner)
+    elif args.command == 'stats':
+        print(stats_table(eval_set, args.out, variants, args.scenes))
     elif args.command == 'families':
         for variant in variants:
             print(f'{variant}:\n{family_table(eval_set, args.out, variant)}')

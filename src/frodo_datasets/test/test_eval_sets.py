@@ -20,14 +20,16 @@ def _families(eval_set):
 def test_sets_are_disjoint_and_big_enough():
     held, tune, tune2, tune3 = (SETS[n] for n in ('realcapture', 'realcapture-tune', 'realcapture-tune2',
                                                   'realcapture-tune3'))
-    seeds = [held.seeds, tune.seeds, tune2.seeds, tune3.seeds]
+    seeds = [s.seeds for s in SETS.values()]   # every set, the inside-out walks (test_realwalk.py) included
     assert len(set().union(*seeds)) == sum(len(s) for s in seeds)
     assert len(held.seeds) >= 12 and sum(held.objects) >= 40
     assert sum(tune.objects) + sum(tune2.objects) >= 60
     held_families = _families(held)
     unseen = [f for c, f in held_families if f in eval_families(c)]
     assert len(unseen) >= 8 and {c for c, f in held_families if f in eval_families(c)} == {'chair', 'dining table'}
-    assert not any(f in eval_families(c) for c, f in _families(tune) + _families(tune2) + _families(tune3))
+    assert not any(f in eval_families(c) for c, f in _families(tune) + _families(tune2) + _families(tune3)
+                   + _families(SETS['realwalk-tune']))
+    assert all(f in eval_families(c) for c, f in _families(SETS['realwalk']))   # designs no prior trained on
     # the third tuning set: designs the first prior `furniture` has not seen, of both classes, next to training
     # designs
     third = _families(tune3)
