@@ -11,7 +11,10 @@ In:  /frodo/tracks (latched MarkerArray of boxes), /frodo/object_codes (latched 
      map), /camera/depth/image_raw (optional, contract v1.1: cached by stamp, used when present).
 Out: /frodo/objects (contract: TRIANGLE_LIST per object, world vertices), /frodo/boxes (contract: CUBE per
      object), /frodo/object_states (latched table for the command line's objects.json), /diagnostics with
-     state idle|busy and pending_objects.
+     state idle|busy, pending_objects, waiting_fused/sparse/dense and the stage running.
+Work is breadth first (`frodo_optim.scheduling`): every object with new input gets its fused mesh and box
+before any object's sparse stage runs, every sparse stage before any dense stage, the object seen first first;
+a dense run yields (best state kept, re-queued) as soon as an object waits for an earlier stage.
 Stamps are data time, never the node clock: each object's markers carry its estimate's stamp (the newest
 frame of the box, code and views it was made from, `ObjectEstimate.stamp_ns`); DELETEs and the state table
 the newest stamp the node has received (`data_stamp`). So a recording of a bag keeps one time line, with or
@@ -49,7 +52,8 @@ from frodo_optim.core import ObjectEstimate
 from frodo_optim.merge import TABLE_KIND, MapMerger, Retractions
 from frodo_optim.object_map import MapObject, MapWriter, load_maps, map_dirs, worker_map_dir
 from frodo_optim.reconstructor import ObjectInput, ObjectReconstructor, Scene, StageOutcome
-from frodo_optim.states import OBJECT_STATES, estimates_table
+from frodo_optim.scheduling import Job, StageQueue
+from frodo_optim.states import OBJECT_STATES, StageReason, estimates_table
 from frodo_optim.views import ViewMemory
 from frodo_shape.prior import ShapePrior
 
@@ -71,7 +75,7 @@ CLASS_COLOURS = {c.name: (*c.colour, 1.0) for c in CATEGORIES}   # chair orange,
 
 
 class OptimNode(FrodoNode):
-    """Keeps a pending set of objects whose inputs changed; a worker thread reconstructs them one by one."""
+    """Queues the stages of objects whose inputs changed; a worker thread runs them breadth first."""
 
     def __init__(self, **kwargs):
         super().__init__('optim_node', PARAMS, **kwargs)
@@ -87,15 +91,13 @@ class OptimNode(FrodoNode):
         self.mesh_markers: dict[int, tuple[ObjectEstimate, Marker]] = {}   # id -> (estimate, its mesh marker)
         self.retractions = Retractions()                            # published once, now gone: DELETE every time
         self.resumed: dict[int, int] = {}                           # id -> views of its saved estimate (not re-run yet)
-        self.pending: set[int] = set()
-        self.busy: int | None = None                                # id of the object being reconstructed
+        self.queue = StageQueue()                                   # breadth first: every fused, then sparse, then dense
+        self.busy: Job | None = None                                # the stage being run
         self.cond = threading.Condition()
         self.stopping = False
         self.views = ViewMemory(self.config)
         self.slam_points: np.ndarray | None = None
         self.stage_info: dict[str, dict[int, str]] = {'sparse': {}, 'dense': {}}   # stage -> id -> last outcome
-        self.dense_stale: set[int] = set()                          # dense deferred; run when the queue empties
-        self.force_dense: set[int] = set()
         self.depth_cache: OrderedDict[int, np.ndarray] = OrderedDict()
         self.stamp_lock = threading.Lock()
         self.data_stamp = 0                                         # newest stamp (ns) of any input received
@@ -183,7 +185,7 @@ class OptimNode(FrodoNode):
                 elif m.action == Marker.DELETE:
                     self.tracks.pop(m.id, None)
                     self.resumed.pop(m.id, None)   # the association dropped it: a resumed object goes too
-                    self.pending.add(m.id)
+                    self.queue.request(m.id)
                 elif m.type == Marker.CUBE:
                     try:  # one bad box must not drop the others of the array
                         box = conv.marker_to_box(m)
@@ -193,7 +195,7 @@ class OptimNode(FrodoNode):
                     if np.all(np.isfinite(box[0])) and np.all(np.isfinite(box[1])) and np.all(box[1] > 0):
                         self.tracks[m.id] = (m.ns, box)
                         self.input_stamps[m.id] = max(self.input_stamps.get(m.id, 0), stamp)
-                        self.pending.add(m.id)
+                        self.queue.request(m.id)
                     else:
                         self.report_error('tracks', f'object {m.id}: invalid box {box}')
             self.cond.notify()
@@ -216,7 +218,7 @@ class OptimNode(FrodoNode):
                 if old is None or old[1] != int(row['num_views']) or not np.array_equal(old[2], code):
                     self.codes[oid] = (int(row['category']), int(row['num_views']), code)
                     self.input_stamps[oid] = max(self.input_stamps.get(oid, 0), stamp)
-                    self.pending.add(oid)
+                    self.queue.request(oid)
             self.cond.notify()
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
@@ -297,32 +299,33 @@ class OptimNode(FrodoNode):
 
     # ------------------------------------------------------------ worker
     def _work(self) -> None:
+        """Run the queued stages one at a time, breadth first (`scheduling.StageQueue`)."""
         while True:
             with self.cond:
-                while not self.pending and not self.stopping:
-                    if self.dense_stale:   # queue empty: catch up the dense stages deferred during bursts
-                        self.force_dense |= self.dense_stale
-                        self.pending |= self.dense_stale
-                        self.dense_stale.clear()
-                        break
+                while not self.queue and not self.stopping:
                     self.cond.wait(timeout=0.5)
                 if self.stopping:
                     return
-                oid = min(self.pending)
-                self.pending.discard(oid)
-                self.busy = oid
-                track, codes = self.tracks.get(oid), self.codes.get(oid)
-                stamp = self.input_stamps.get(oid, 0)
+                job = self.queue.pop()
+                self.busy = job
+                track, codes = self.tracks.get(job.object_id), self.codes.get(job.object_id)
+                stamp = self.input_stamps.get(job.object_id, 0)
             try:
-                self._reconstruct(oid, track, codes, stamp)
+                self._run(job, track, codes, stamp)
             except Exception as err:  # noqa: BLE001 - one bad object must not stop the others
-                self.report_error(f'object {oid}', err)
+                self.report_error(f'object {job.object_id}', err)
             finally:
                 with self.cond:
                     self.busy = None
-                    self.force_dense.discard(oid)
 
-    def _reconstruct(self, oid: int, track, codes, stamp_ns: int = 0) -> None:
+    def _yield_dense(self) -> bool:
+        """A dense run stops (its best state kept, the rest re-queued) when the node stops or an object waits for
+        its fused or sparse stage: a new object's first mesh does not wait for another's dense stage."""
+        with self.cond:
+            return self.stopping or self.queue.waiting_before('dense')
+
+    def _run(self, job: Job, track, codes, stamp_ns: int = 0) -> None:
+        oid = job.object_id
         if track is None or codes is None or codes[1] < self.config.min_views:
             # A resumed object stays until the association deletes its track: its fused code may come first.
             if track is None and oid in self.estimates and oid not in self.resumed:
@@ -344,17 +347,19 @@ class OptimNode(FrodoNode):
         category, views, code = codes
         with self.cond:
             scene = Scene(self.slam_points, dict(self.tracks))
-            others_waiting = bool(self.pending) and oid not in self.force_dense
-        outcome = self.reconstructor.reconstruct(
-            ObjectInput(oid, class_name, category, box, code, views, stamp_ns), self.views, scene,
-            others_waiting=others_waiting, should_stop=lambda: self.stopping,   # shutdown does not wait for dense
-            on_stage=self._on_stage)
-        if outcome.error:
-            raise RuntimeError(outcome.error)
-        if outcome.dense_deferred:
-            with self.cond:
-                self.dense_stale.add(oid)
-            self.count('dense_deferred')
+            others_waiting = bool(self.queue) and not job.forced
+        step = self.reconstructor.run_stage(
+            ObjectInput(oid, class_name, category, box, code, views, stamp_ns), job.stage, self.views, scene,
+            others_waiting=others_waiting, should_stop=self._yield_dense, on_stage=self._on_stage)
+        if step.error:
+            raise RuntimeError(step.error)
+        with self.cond:
+            interrupted = step.outcome is not None and step.outcome.reason is StageReason.DENSE_INTERRUPTED
+            if step.deferred or (interrupted and not self.stopping):
+                self.queue.defer(oid)
+                self.count('dense_deferred' if step.deferred else 'dense_yielded')
+            elif step.next is not None:
+                self.queue.advance(oid, job.stage)
 
     def _on_stage(self, outcome: StageOutcome) -> None:
         """After each stage of an object: count, remember its words for /diagnostics, publish the map."""
@@ -500,9 +505,11 @@ class OptimNode(FrodoNode):
     def diagnostic_values(self) -> dict:
         with self.cond:
             # distinct objects with work left: queued, deferred dense stages, and the one being reconstructed
-            waiting = self.pending | self.dense_stale | ({self.busy} if self.busy is not None else set())
+            waiting = self.queue.objects() | ({self.busy.object_id} if self.busy is not None else set())
             state = 'busy' if waiting else 'idle'
             values = {'state': state, 'pending_objects': len(waiting),
+                      **{f'waiting_{stage}': n for stage, n in self.queue.waiting().items()},
+                      'running': f'object {self.busy.object_id} {self.busy.stage}' if self.busy is not None else '-',
                       'objects': len(self.estimates), 'tracks': len(self.tracks),
                       'worker': f'{self.worker_index}/{self.worker_count}',
                       **({'shares_merged': f'{len(self.merger.heard)}/{self.worker_count}'} if self.merger else {}),

@@ -87,6 +87,18 @@ class ObjectOutcome:
         return self.stages[-1] if self.stages else None
 
 
+@dataclass
+class StageStep:
+    """What `ObjectReconstructor.run_stage` did: the stage's outcome (None: it did not run), the stage that may
+    follow (None: the object is done for now), why the object has no estimate (`error`), or that its dense
+    stage waits until no other object does (`deferred`)."""
+
+    outcome: StageOutcome | None
+    next: str | None
+    error: str = ''
+    deferred: bool = False
+
+
 class ObjectReconstructor:
     """The object map of the optimiser: `estimates` {id: ObjectEstimate}, refined object by object."""
 
@@ -96,11 +108,13 @@ class ObjectReconstructor:
         self.estimates: dict[int, ObjectEstimate] = {}
         self.mesh_cache: dict[int, tuple[np.ndarray, object]] = {}   # id -> (code, normalised mesh)
         self.dense_views_used: dict[int, int] = {}                   # id -> num_views at its last dense run
+        self.sparse_results: dict[int, tuple[ObjectEstimate, SparseResult]] = {}   # id -> its last sparse stage
 
     def forget(self, object_id: int) -> bool:
         """Drop an object (its track is gone); True when it had an estimate."""
         self.mesh_cache.pop(object_id, None)
         self.dense_views_used.pop(object_id, None)
+        self.sparse_results.pop(object_id, None)
         return self.estimates.pop(object_id, None) is not None
 
     def dense_due(self, object_id: int, num_views: int, others_waiting: bool) -> bool:
@@ -113,9 +127,9 @@ class ObjectReconstructor:
     def reconstruct(self, obj: ObjectInput, views: ViewMemory, scene: Scene, *, others_waiting: bool = False,
                     should_stop: Callable[[], bool] | None = None,
                     on_stage: Callable[[StageOutcome], None] | None = None) -> ObjectOutcome:
-        """Fused, then sparse, then dense for one object; `on_stage` is called after each stage (the node
-        publishes the map there). A refined object keeps its last refinement until a new one replaces it."""
-        cfg = self.config
+        """Fused, then sparse, then dense for one object (`run_stage` in turn); `on_stage` is called after each
+        stage (the node publishes the map there). A refined object keeps its last refinement until a new one
+        replaces it."""
         outcome = ObjectOutcome(obj.object_id)
 
         def emit(stage: StageOutcome) -> None:
@@ -123,29 +137,59 @@ class ObjectReconstructor:
             if on_stage is not None:
                 on_stage(stage)
 
-        stamp = max(int(obj.stamp_ns), views.newest_stamp(obj.object_id))
+        stage: str | None = 'fused'
+        while stage is not None:
+            step = self.run_stage(obj, stage, views, scene, others_waiting=others_waiting, should_stop=should_stop,
+                                  on_stage=emit)
+            if step.error:
+                outcome.error = step.error
+                break
+            outcome.dense_deferred = step.deferred
+            stage = step.next
+        return outcome
+
+    def run_stage(self, obj: ObjectInput, stage: str, views: ViewMemory, scene: Scene, *,
+                  others_waiting: bool = False, should_stop: Callable[[], bool] | None = None,
+                  on_stage: Callable[[StageOutcome], None] | None = None) -> 'StageStep':
+        """One stage of one object, for a scheduler that interleaves objects (breadth first): 'fused' places the
+        decoded mesh, 'sparse' refines from the fused placement, 'dense' from the object's last sparse result
+        (kept from its sparse stage). `StageStep.next` says which stage may follow. A dense stage that is not
+        due (`dense_due`) while others wait does not run (`deferred`)."""
+        cfg = self.config
+        oid = obj.object_id
+        emit = on_stage or (lambda outcome: None)
+        stamp = max(int(obj.stamp_ns), views.newest_stamp(oid))
+        if stage == 'dense':
+            stored = self.sparse_results.get(oid)
+            if stored is None or not cfg.dense_on:
+                return StageStep(None, None)
+            if not self.dense_due(oid, obj.num_views, others_waiting):
+                return StageStep(None, None, deferred=True)
+            sparse_estimate, result = stored
+            floor = support.scene_floor(scene.tracks, scene.slam_points)
+            outcome = self._dense(obj, sparse_estimate, result, views, scene, floor, should_stop, stamp)
+            emit(outcome)
+            return StageStep(outcome, None)
         fused = self._fused(obj, stamp)
         if fused is None:
-            outcome.error = 'decoded shape has no surface (code far from the prior?)'
-            return outcome
-        previous = self.estimates.get(obj.object_id)
-        replace_previous = previous is None or previous.stage == 'fused' or not cfg.sparse_enabled
-        if replace_previous:
-            self.estimates[obj.object_id] = fused
-        emit(StageOutcome(obj.object_id, 'fused', StageReason(fused.stage_reason), self.estimates[obj.object_id],
-                          seconds=fused.timings['fused_s'], published=replace_previous))
-        if not cfg.sparse_enabled:
-            return outcome
+            return StageStep(None, None, error='decoded shape has no surface (code far from the prior?)')
+        if stage == 'fused':
+            previous = self.estimates.get(oid)
+            replace_previous = previous is None or previous.stage == 'fused' or not cfg.sparse_enabled
+            if replace_previous:
+                self.estimates[oid] = fused
+            outcome = StageOutcome(oid, 'fused', StageReason(fused.stage_reason), self.estimates[oid],
+                                   seconds=fused.timings['fused_s'], published=replace_previous)
+            emit(outcome)
+            return StageStep(outcome, 'sparse' if cfg.sparse_enabled else None)
+        if stage != 'sparse':
+            raise ValueError(f"unknown stage {stage!r}: 'fused', 'sparse' or 'dense'")
         floor = support.scene_floor(scene.tracks, scene.slam_points)
-        sparse_stage, result = self._sparse(obj, fused, views, scene, floor, stamp)
-        emit(sparse_stage)
-        if result is None or not cfg.dense_on:
-            return outcome
-        if not self.dense_due(obj.object_id, obj.num_views, others_waiting):
-            outcome.dense_deferred = True
-            return outcome
-        emit(self._dense(obj, sparse_stage.estimate, result, views, scene, floor, should_stop, stamp))
-        return outcome
+        outcome, result = self._sparse(obj, fused, views, scene, floor, stamp)
+        if result is not None:
+            self.sparse_results[oid] = (outcome.estimate, result)
+        emit(outcome)
+        return StageStep(outcome, 'dense' if result is not None and cfg.dense_on else None)
 
     # ------------------------------------------------------------ stages
     def _fused(self, obj: ObjectInput, stamp: int) -> ObjectEstimate | None:

@@ -107,6 +107,16 @@ def test_optimiser_serves_callbacks_while_optimising_and_reports_stages(two_chai
         assert records[1]['stage_reason'] in ('dense time limit', 'dense not better than sparse')
         seen = [STAGES[s] for t in map(conv.cloud_to_table, states) for s in t['stage'][t['object_id'] == 2]]
         assert seen.index('fused') < seen.index('sparse')        # published stage by stage
+        # Breadth first: object 1's dense run yielded to object 2's fused and sparse stages and ran again after
+        # them, so object 1 became dense only after object 2 was sparse.
+        changes, last = [], {}
+        for table in map(conv.cloud_to_table, states):
+            for oid, stage in zip(table['object_id'], table['stage']):
+                if last.get(int(oid)) != STAGES[stage]:
+                    last[int(oid)] = STAGES[stage]
+                    changes.append((int(oid), STAGES[stage]))
+        assert changes.index((2, 'sparse')) < changes.index((1, 'dense')), changes
+        assert int(status().get('dense_yielded', 0)) >= 1 and status().get('waiting_dense') == '0', status()
         assert STAGE_REASONS.index('in progress') == 0
         # Stamps: data time. The tracks and codes carry the first frame's stamp, the views all six frames': every
         # object estimate is stamped with the newest frame it used, the table with the newest frame received.
