@@ -14,7 +14,8 @@ Sections (each a function returning plain data; a section that cannot run says w
 - `association`: per-frame latency against the objects in view, association (`add_frame`) and box
   refinement (`refine_boxes`) separately and together (paper Sec. 5.1).
 - `end_to_end`: `frodo run` of the demo bag: wall time, per-stage figures from the nodes' diagnostics
-  and objects.json, and the intervals between each node's `/diagnostics` reports (contract: at least
+  and objects.json, the seconds from each object's confirmation (its first track) to its first fused, sparse
+  and dense state, and the intervals between each node's `/diagnostics` reports (contract: at least
   1 Hz), from their publish stamps and, separately, their arrival at a probe.
 - `soak` (not in the default set: minutes to an hour): `soak_frames` frames of the demo bag repeated with shifted
   stamps at `soak_rate` x real time through the whole graph; peak and growing memory per node, backlog, latency
@@ -324,15 +325,43 @@ def association_latency(objects: list[int], frames: int, seed: int = 0) -> dict[
     return {'rows': rows}
 
 
+def stage_latencies(confirmed: dict[int, float], reached: dict[int, dict[str, float]]) -> dict[str, list[float]]:
+    """Per stage, the seconds from each object's confirmation (its first track) to its first state at that stage,
+    sorted; objects that never reached a stage are left out of its list."""
+    from frodo_optim.states import STAGES
+    return {stage: sorted(round(reached[oid][stage] - confirmed[oid], 2) for oid in confirmed
+                          if stage in reached.get(oid, {})) for stage in STAGES}
+
+
 def end_to_end(bag: Path, out: Path, rate: float) -> dict[str, Any]:
     """`frodo run` of `bag` with a probe recording every /diagnostics report; per-stage figures."""
     from diagnostic_msgs.msg import DiagnosticArray
+    from sensor_msgs.msg import PointCloud2
+    from visualization_msgs.msg import Marker, MarkerArray
 
     from frodo_bringup.graph import NODES
     from frodo_bringup.run import run_bag
     from frodo_bringup.session import RosSession
+    from frodo_common import conversions as conv
     from frodo_common import topics
+    from frodo_optim.states import OBJECT_STATES, STAGES
     bag = demo_bag(bag)
+    confirmed: dict[int, float] = {}          # object -> when its track first reached the probe
+    reached: dict[int, dict[str, float]] = {}  # object -> stage -> when its state first said that stage
+
+    def on_tracks(msg: MarkerArray) -> None:
+        now = time.monotonic()
+        with lock:
+            for m in msg.markers:
+                if m.action == Marker.ADD:
+                    confirmed.setdefault(m.id, now)
+
+    def on_states(msg: PointCloud2) -> None:
+        now = time.monotonic()
+        table = conv.cloud_to_table(msg)
+        with lock:
+            for oid, stage in zip(table['object_id'], table['stage']):
+                reached.setdefault(int(oid), {}).setdefault(STAGES[int(stage)], now)
     arrivals: dict[str, list[float]] = {}     # when the probe received each report
     sent: dict[str, list[float]] = {}         # header stamps: when the node published it
     last: dict[str, dict[str, str]] = {}
@@ -350,6 +379,8 @@ def end_to_end(bag: Path, out: Path, rate: float) -> dict[str, Any]:
     log = io.StringIO()
     with RosSession('frodo_bench_probe') as probe:
         probe.node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, on_diagnostics, 100)
+        probe.node.create_subscription(MarkerArray, topics.TRACKS, on_tracks, topics.LATCHED_QOS)
+        probe.node.create_subscription(PointCloud2, OBJECT_STATES, on_states, topics.LATCHED_QOS)
         result = run_bag(bag, out, rate=rate, output=log, progress=False, timeout=600)
     (out / 'run.log').write_text(log.getvalue())
     names = [n.name for n in NODES]
@@ -368,6 +399,7 @@ def end_to_end(bag: Path, out: Path, rate: float) -> dict[str, Any]:
                                'arrival': gap_stats(arrivals.get(name, []))}
         assoc = last.get('association_node', {})
         shape = last.get('shape_node', {})
+        latency = stage_latencies(confirmed, reached)
     optimiser_s = [r.get('timings', {}).get('optimiser_s') for r in result.records]
     optimiser_s = [s for s in optimiser_s if s is not None]
     bag_s = result.play.seconds if result.play is not None else None
@@ -380,6 +412,7 @@ def end_to_end(bag: Path, out: Path, rate: float) -> dict[str, Any]:
                 'shape_crops_encoded': shape.get('crops_encoded'),
                 'optimiser_s_per_object': [round(s, 2) for s in optimiser_s],
                 'optimiser_s_total': round(float(sum(optimiser_s)), 2)},
+            'confirmation_to_stage_s': latency,
             'diagnostics_intervals': intervals}
 
 
@@ -535,6 +568,9 @@ def summary(doc: dict[str, Any]) -> str:
         lines.append(f"demo run: exit {e['exit_code']}, {e['objects']} objects, {e['wall_s']} s wall "
                      f"({e['playback_s']} s playing); association {e['stages']['association_ms_per_frame_mean']} ms "
                      f"per frame; optimiser {e['stages']['optimiser_s_total']} s over all objects")
+        for stage, values in e.get('confirmation_to_stage_s', {}).items():
+            if values:
+                lines.append(f"  confirmation -> {stage}: {', '.join(f'{v} s' for v in values)} (per object)")
         for name, v in e['diagnostics_intervals'].items():
             if 'max_s' in v:
                 lines.append(f"  /diagnostics {name}: {v['reports']} reports, every {v['mean_s']} s on average, "
