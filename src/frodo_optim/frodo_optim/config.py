@@ -85,6 +85,8 @@ _TABLE: tuple[tuple[str, tuple[str, ...], str], ...] = (
     ('dense_starts', ('dense_starts',), "Dense stage from the sparse result and up to N - 1 end states of the sparse "
      "stage's other runs (box, placement hypothesis, code restart); the lowest dense energy wins (1: the sparse "
      "result only, a third of the dense cost)."),
+    ('dense_screen_iterations', ('dense.screen_iterations',), 'With several dense starts: run each this many '
+     'iterations and only the lowest-energy one the rest (successive halving; 0: every start in full).'),
     ('dense_max_seconds', ('dense.max_seconds',), 'Wall-clock bound of one dense run (per object and start; best '
      'state kept).'),
     ('dense_views', ('dense.max_views',), 'Views (spread evenly over the kept ones) used by the dense stage.'),

@@ -42,7 +42,7 @@ from __future__ import annotations
 import math
 import time
 from typing import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import Enum
 
 import numpy as np
@@ -96,6 +96,7 @@ class DenseConfig:
     optimise_code: bool = True
     min_improvement: float = 0.0       # relative drop of the check energy needed to accept the dense result
     band_points: int = 8192            # most grid points in the code vector-Jacobian product
+    screen_iterations: int = 0         # several starts: run each this long, continue only the best (0: all in full)
     seed: int = 0
 
 
@@ -305,12 +306,16 @@ def refine_dense_starts(prior, code, T_world_object: np.ndarray, views: list[Den
     not lower its energy. Other arguments as `refine_dense`.
     """
     starts = [(code, T_world_object)] + [tuple(a[:2]) for a in alternatives][:max(0, int(max_starts) - 1)]
+    cfg = config or DenseConfig()
+    screen = int(cfg.screen_iterations)
+    screening = len(starts) > 1 and 0 < screen < int(cfg.iterations)
+    run_cfg = replace(cfg, iterations=screen) if screening else cfg
     results, skipped = [], False
     for code, T in starts:
         if results and should_stop is not None and should_stop():
             skipped = True
             break
-        results.append(refine_dense(prior, code, T, views, slam_points, box, config, should_stop=should_stop,
+        results.append(refine_dense(prior, code, T, views, slam_points, box, run_cfg, should_stop=should_stop,
                                     floor_height=floor_height, height_range=height_range))
 
     def check(r: DenseResult) -> float:
@@ -321,9 +326,20 @@ def refine_dense_starts(prior, code, T_world_object: np.ndarray, views: list[Den
     if not check(results[best]) < check(results[0]):
         best = 0
     chosen = results[best]
+    if screening and not skipped and chosen.stop is DenseStop.COMPLETED:
+        # successive halving: only the best screened start gets the remaining iterations, from its best state
+        # (so the continued run never ends above it)
+        rest = refine_dense(prior, chosen.code, chosen.T_world_object, views, slam_points, box,
+                            replace(cfg, iterations=int(cfg.iterations) - screen), should_stop=should_stop,
+                            floor_height=floor_height, height_range=height_range)
+        results.append(rest)
+        if check(rest) <= check(chosen):
+            rest.improved = rest.improved or chosen.improved
+            rest.reason = f'best of {len(starts)} starts after {screen} iterations, continued: {rest.reason}'
+            chosen = rest
     if best > 0:
         chosen.improved = True
-        chosen.reason = f'start {best} of {len(results)} (E {check(results[0]):.3f} from the sparse result): {chosen.reason}'
+        chosen.reason = f'start {best} of {len(starts)} (E {check(results[0]):.3f} from the sparse result): {chosen.reason}'
     chosen.seconds = sum(r.seconds for r in results)
     chosen.total_iterations = sum(r.iterations for r in results)
     if skipped or any(r.stop is DenseStop.INTERRUPTED for r in results):

@@ -1,6 +1,7 @@
 """Dense stage (paper Sec. 5.3 "Dense Optimization"): energies' gradients against finite differences, the
 implicit surface-point derivative dx/dz, photometric visibility, rollback, and a refinement that helps."""
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -247,6 +248,21 @@ def test_dense_starts_keep_the_lowest_energy_end_state(prior, scene):
     single, start = refine_dense_starts(prior, scene['other'], far, scene['views'], config=cfg,
                                         alternatives=[near], max_starts=1)
     assert start == 0 and single.reason == first.reason
+
+
+def test_screened_starts_continue_only_the_best_start(prior, scene):
+    """screen_iterations: every start runs that long, only the lowest-energy one runs the rest (successive halving):
+    fewer iterations in all, the start near the truth still wins, and it ends no higher than its screened state."""
+    far = pose_matrix(0.7 + 1.2, scene['T'][:3, 3] + [0.15, -0.1, 0.0], 0.4)
+    near = (scene['code'], scene['T'])
+    cfg = DenseConfig(iterations=4, grid_resolution=24, rays_per_view=64, screen_iterations=2)
+    res, start = refine_dense_starts(prior, scene['other'], far, scene['views'], config=cfg,
+                                     alternatives=[(*near, 'near the truth')], max_starts=2)
+    assert start == 1 and res.improved and 'after 2 iterations, continued' in res.reason
+    assert res.total_iterations <= 2 * 2 + 2 < 2 * 4
+    screened = refine_dense(prior, *near, scene['views'], config=replace(cfg, iterations=2))
+    assert res.energies['total'] <= screened.energies['total'] + 1e-6
+    assert np.linalg.norm(res.translation - scene['T'][:3, 3]) < 0.05
 
 
 def test_time_limit_bounds_the_stage(prior, scene):
