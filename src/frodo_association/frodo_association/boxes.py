@@ -14,13 +14,12 @@ v); world frame gravity aligned, z up; `T_world_camera` is the camera pose (opti
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from frodo_association.robust_lsq import soft_l1_least_squares
-from frodo_common.geometry import box_corners
+from frodo_common.geometry import Box3D, box_corners
 
 # Corner offsets of a unit box, in the corner order of frodo_common.geometry.box_corners.
 # Typical upright dimensions (long side, short side, height) in metres per COCO class: common real furniture
@@ -68,19 +67,6 @@ def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     inter = ix * iy
     union = (a[..., 2] - a[..., 0]) * (a[..., 3] - a[..., 1]) + (b[..., 2] - b[..., 0]) * (b[..., 3] - b[..., 1]) - inter
     return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
-
-
-@dataclass
-class Box3D:
-    """Upright box: centre (3,), size (dx, dy, dz) (3,), yaw about z in [-pi/4, pi/4)."""
-
-    center: np.ndarray
-    size: np.ndarray
-    yaw: float
-
-    def corners(self) -> np.ndarray:
-        """(8, 3) world corners."""
-        return box_corners(self.center, self.size, self.yaw)
 
 
 def footprint_overlap(a: Box3D, b: Box3D) -> float:

@@ -244,9 +244,8 @@ def reconstruct(bag: str | os.PathLike, config: PipelineConfig | None = None,
     assoc = associator.associator
     while assoc.refine_boxes(max_fits=100).fitted:     # final boxes of the whole sequence
         pass
-    tracks = {t.object_id: (category_by_id(t.coco_id).name, (np.asarray(t.box.center), np.asarray(t.box.size),
-                                                             float(t.box.yaw)))
-              for t in assoc.confirmed_tracks() if t.box is not None}
+    tracks = {t.object_id: (category_by_id(t.coco_id).name, t.box) for t in assoc.confirmed_tracks()
+              if t.box is not None}
     seconds['association'] = time.perf_counter() - t0
     say(f'association: {frames} frames, {len(tracks)} objects ({seconds["association"]:.1f} s)')
 

@@ -12,7 +12,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker
 
-from frodo_common.geometry import make_transform, matrix_to_quat, quat_to_matrix, yaw_matrix
+from frodo_common.geometry import Box3D, make_transform, matrix_to_quat, quat_to_matrix, yaw_matrix
 
 
 class ConversionError(ValueError):
@@ -296,11 +296,11 @@ def box_to_marker(center, size, yaw: float, ns: str, marker_id: int, stamp_ns: i
     return m
 
 
-def marker_to_box(marker: Marker) -> tuple[np.ndarray, np.ndarray, float]:
-    """CUBE marker -> (centre (3,), size (3,), yaw about z)."""
+def marker_to_box(marker: Marker) -> Box3D:
+    """CUBE marker -> `Box3D` (centre, size, yaw about z; unpacks as that triple)."""
     T = pose_to_matrix(marker.pose)
     yaw = float(np.arctan2(T[1, 0], T[0, 0]))
-    return T[:3, 3].copy(), np.array([marker.scale.x, marker.scale.y, marker.scale.z]), yaw
+    return Box3D(T[:3, 3].copy(), np.array([marker.scale.x, marker.scale.y, marker.scale.z]), yaw)
 
 
 def delete_marker(ns: str, marker_id: int, stamp_ns: int, frame_id: str) -> Marker:

@@ -1,9 +1,12 @@
-"""Rigid and similarity transforms, quaternions, pinhole projection and rays (numpy, no ROS).
+"""Rigid and similarity transforms, quaternions, pinhole projection, rays and upright boxes (numpy, no ROS).
 
 Conventions (CONTRACT.md): world z up; camera optical frame x right, y down, z forward;
 `T_a_b` maps points from frame b to frame a; quaternions are (x, y, z, w).
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterator
 
 import numpy as np
 
@@ -117,6 +120,30 @@ def box_corners(center, size, yaw: float) -> np.ndarray:
     half = np.asarray(size, dtype=np.float64) / 2
     signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
     return (signs * half) @ yaw_matrix(yaw).T + np.asarray(center, dtype=np.float64)
+
+
+@dataclass(eq=False)
+class Box3D:
+    """The project's one 3D box: upright, centre (3,) and size (dx, dy, dz) (3,) in metres, yaw about world z
+    (radians; the association keeps it in [-pi/4, pi/4)). Unpacks as `center, size, yaw = box`, so code written
+    for the (centre, size, yaw) triple takes it as is; messages carry it as a CUBE marker
+    (`conversions.box_to_marker` / `marker_to_box`), tables as 7 floats."""
+
+    center: np.ndarray
+    size: np.ndarray
+    yaw: float
+
+    def __post_init__(self) -> None:
+        self.center = np.asarray(self.center, dtype=np.float64).reshape(3)
+        self.size = np.asarray(self.size, dtype=np.float64).reshape(3)
+        self.yaw = float(self.yaw)
+
+    def __iter__(self) -> Iterator:
+        return iter((self.center, self.size, self.yaw))
+
+    def corners(self) -> np.ndarray:
+        """(8, 3) world corners."""
+        return box_corners(self.center, self.size, self.yaw)
 
 
 def box_iou_2d(a, b) -> float:

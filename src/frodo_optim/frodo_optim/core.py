@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
-from frodo_common.geometry import make_transform, transform_points, yaw_matrix
+from frodo_common.geometry import Box3D, make_transform, transform_points, yaw_matrix
 
 
 @dataclass
@@ -22,7 +22,7 @@ class ObjectEstimate:
     """Everything known about one object.
 
     T_world_object: (4, 4) similarity, x_world = scale * R @ x_normalised + t.
-    box: (centre (3,), size (3,), yaw) of the mesh's upright box in the world.
+    box: the mesh's upright world box (`Box3D`).
     stage: 'fused' | 'sparse' | 'dense' (states.STAGES); stage_reason: index into states.STAGE_REASONS.
     stamp_ns: data time of the estimate, the stamp (ns, the bag's or the sensor's clock) of the newest frame it
     was made from (0: unknown); the optimiser stamps the object's markers with it, never with the wall clock.
@@ -34,7 +34,7 @@ class ObjectEstimate:
     code: np.ndarray
     T_world_object: np.ndarray
     scale: float
-    box: tuple[np.ndarray, np.ndarray, float]
+    box: Box3D
     num_views: int
     stage: str
     mesh_world: trimesh.Trimesh
@@ -64,12 +64,12 @@ def place_from_box(mesh_normalised: trimesh.Trimesh, center, size, yaw: float):
     return make_transform(R, t, scale), float(scale), chosen
 
 
-def world_box(mesh_normalised: trimesh.Trimesh, T_world_object: np.ndarray, yaw: float):
-    """Upright world box (centre, size, yaw) of a placed mesh: its normalised-frame box mapped by T."""
+def world_box(mesh_normalised: trimesh.Trimesh, T_world_object: np.ndarray, yaw: float) -> Box3D:
+    """Upright world box of a placed mesh: its normalised-frame box mapped by T."""
     lo, hi = mesh_normalised.bounds
     scale = float(np.linalg.norm(T_world_object[:3, 0]))
     center = transform_points(T_world_object, ((lo + hi) / 2)[None])[0]
-    return center, (hi - lo) * scale, float(yaw)
+    return Box3D(center, (hi - lo) * scale, float(yaw))
 
 
 def fused_estimate(object_id: int, class_name: str, category: int, code: np.ndarray, num_views: int,

@@ -387,7 +387,8 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
     check_rays = phase_rays[-1]
     batch = ViewBatch(views, dev)
     if box is not None:
-        slam = slam_points_near(slam_points, box[0], box[1], float(box[2]), margin=0.1 * float(np.max(box[1])) + 0.05)
+        center, size, yaw = box
+        slam = slam_points_near(slam_points, center, size, float(yaw), margin=0.1 * float(np.max(size)) + 0.05)
     else:
         slam = np.zeros((0, 3), np.float32) if slam_points is None else np.asarray(slam_points, np.float32)
     slam_t = torch.as_tensor(slam, device=dev) if len(slam) >= 5 and cfg.w_geometry > 0 else None

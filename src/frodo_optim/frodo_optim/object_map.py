@@ -30,6 +30,7 @@ import numpy as np
 import trimesh
 
 from frodo_common.categories import category_by_id, category_by_name
+from frodo_common.geometry import Box3D
 from frodo_optim.core import ObjectEstimate
 from frodo_optim.states import STAGE_REASONS, STAGES
 
@@ -49,13 +50,13 @@ class MapObject:
     """One saved object: the optimiser's estimate and the inputs it was made from.
 
     fused_code (D,) / fused_views / category: the shape node's fused code table row (None when unknown).
-    track: (class name, (centre (3,), size (3,), yaw)) of the association's box (None when unknown).
+    track: (class name, `Box3D`) of the association's box (None when unknown).
     """
 
     estimate: ObjectEstimate
     fused_code: np.ndarray | None = None
     fused_views: int = 0
-    track: tuple[str, tuple[np.ndarray, np.ndarray, float]] | None = None
+    track: tuple[str, Box3D] | None = None
 
 
 def worker_map_dir(root: str | os.PathLike, index: int, count: int) -> Path:
@@ -145,12 +146,12 @@ def _vector(record: dict, key: str, length: int | None = None) -> np.ndarray:
     return value
 
 
-def _box(value: Any) -> tuple[np.ndarray, np.ndarray, float]:
+def _box(value: Any) -> Box3D:
     center, size = _vector(value, 'center', 3), _vector(value, 'size', 3)
     yaw = float(value['yaw'])
     if not math.isfinite(yaw) or not (size > 0).all():
         raise ValueError('box needs a finite yaw and a positive size')
-    return center, size, yaw
+    return Box3D(center, size, yaw)
 
 
 def _map_object(record: dict, directory: Path) -> MapObject:

@@ -192,7 +192,7 @@ class OptimNode(FrodoNode):
                     except conv.ConversionError as err:
                         self.report_error('tracks', f'object {m.id}: {err}')
                         continue
-                    if np.all(np.isfinite(box[0])) and np.all(np.isfinite(box[1])) and np.all(box[1] > 0):
+                    if np.all(np.isfinite(box.center)) and np.all(np.isfinite(box.size)) and np.all(box.size > 0):
                         self.tracks[m.id] = (m.ns, box)
                         self.input_stamps[m.id] = max(self.input_stamps.get(m.id, 0), stamp)
                         self.queue.request(m.id)

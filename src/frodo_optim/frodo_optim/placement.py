@@ -47,7 +47,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from frodo_common.geometry import yaw_matrix
+from frodo_common.geometry import Box3D, yaw_matrix
 from frodo_optim import support
 
 DEPTH_OFFSETS = (-0.3, -0.15, 0.15, 0.3)     # metres along the mean viewing direction through the ray centre
@@ -200,7 +200,7 @@ def search(points_norm: np.ndarray, box, views, batch, slam_points: np.ndarray |
         pts = pts[rng.choice(len(pts), point_samples, replace=False)]
     lo, hi = pts.min(0), pts.max(0)
     mid, extent = (lo + hi) / 2, np.maximum(hi - lo, 1e-6)
-    centre_b, size_b = np.asarray(box[0], dtype=np.float64), np.asarray(box[1], dtype=np.float64)
+    centre_b, size_b, _ = Box3D(*box)          # a Box3D or a (centre, size, yaw) triple
     scale_b = float(size_b[2] / extent[2])
     boxes_obs, border = detection_boxes(views, crop_margin)
 

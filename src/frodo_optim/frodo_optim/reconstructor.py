@@ -22,6 +22,7 @@ from typing import Callable
 import numpy as np
 
 from frodo_common.categories import category_by_id
+from frodo_common.geometry import Box3D
 from frodo_optim import support
 from frodo_optim.config import OptimConfig
 from frodo_optim.core import ObjectEstimate, fused_estimate, world_box
@@ -31,7 +32,6 @@ from frodo_optim.sparse import SparseResult, refine, select_views
 from frodo_optim.states import StageReason
 from frodo_optim.views import ViewMemory
 
-Box = tuple  # (centre (3,), size (3,), yaw): the association's upright box in the world
 
 
 @dataclass
@@ -41,7 +41,7 @@ class ObjectInput:
     object_id: int
     class_name: str          # the track's class (used when `category` is no known COCO id)
     category: int            # COCO id of the fused code's detections
-    box: Box
+    box: Box3D
     code: np.ndarray         # (C,) fused code
     num_views: int           # detections the fused code came from
     stamp_ns: int = 0        # newest frame stamp (ns) of the box and code (0: unknown; the stored views say)
@@ -53,7 +53,7 @@ class Scene:
     {id: (class name, box)} (floor estimate, neighbour boxes for the landmark selection)."""
 
     slam_points: np.ndarray | None = None
-    tracks: dict[int, tuple[str, Box]] = field(default_factory=dict)
+    tracks: dict[int, tuple[str, Box3D]] = field(default_factory=dict)
 
 
 @dataclass

@@ -54,6 +54,7 @@ import torch
 import torch.nn.functional as F
 from scipy.ndimage import distance_transform_edt
 
+from frodo_common.geometry import Box3D
 from frodo_optim.photometric import checked_view_inputs, photometric_energy
 
 from frodo_optim import placement, support
@@ -339,8 +340,7 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
     """
     cfg = config or SparseConfig()
     start = time.perf_counter()
-    center, size, box_yaw = (np.asarray(box[0], dtype=np.float64), np.asarray(box[1], dtype=np.float64),
-                             float(box[2]))
+    center, size, box_yaw = Box3D(*box)        # a Box3D or a (centre, size, yaw) triple
     code = np.asarray(code, dtype=np.float32)
     device = getattr(prior, 'device', 'cpu')
 

@@ -30,7 +30,7 @@ def test_fused_estimate_world_mesh_and_box():
     est = fused_estimate(3, 'chair', 62, np.zeros(64), 5, shape, (np.array([1.0, 0, 0.4]), np.array([0.4, 0.4, 0.8]), 0.0))
     lo, hi = est.mesh_world.bounds
     assert np.allclose(lo, [0.8, -0.2, 0.0]) and np.allclose(hi, [1.2, 0.2, 0.8])
-    assert np.allclose(est.box[1], [0.4, 0.4, 0.8]) and est.stage == 'fused'
+    assert np.allclose(est.box.size, [0.4, 0.4, 0.8]) and est.stage == 'fused'
 
 
 def test_state_table_to_json_records():

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from frodo_common.geometry import Box3D
 from frodo_optim.core import ObjectEstimate
 from frodo_optim.object_map import (MAP_FILE, MapObject, MapWriter, ObjectMapError, load_map, load_maps,
                                     worker_map_dir)
@@ -23,7 +24,7 @@ def _object(oid: int, stage: str = 'dense', views: int = 12) -> MapObject:
                          rng.normal(size=64).astype(np.float32), pose, 0.45,
                          (np.array([oid, 0.5, 0.3]), np.array([0.6, 0.6, 0.6]), 0.25), views, stage, mesh,
                          {'fused_s': 0.5, 'sparse_s': 2.0}, STAGE_REASONS.index('all stages done'))
-    track = ('chair', (np.array([oid, 0.5, 0.31]), np.array([0.61, 0.6, 0.58]), 0.2))
+    track = ('chair', Box3D(np.array([oid, 0.5, 0.31]), np.array([0.61, 0.6, 0.58]), 0.2))
     return MapObject(est, rng.normal(size=64).astype(np.float32), views, track)
 
 
@@ -46,7 +47,7 @@ def test_round_trip_keeps_estimates_inputs_and_meshes(tmp_path):
         assert np.allclose(b.mesh_world.vertices, a.mesh_world.vertices, atol=1e-6)
         assert np.array_equal(b.mesh_world.faces, a.mesh_world.faces)
         assert np.allclose(after.fused_code, before.fused_code) and after.fused_views == before.fused_views
-        assert after.track[0] == before.track[0] and np.allclose(after.track[1][0], before.track[1][0])
+        assert after.track[0] == before.track[0] and np.allclose(after.track[1].center, before.track[1].center)
 
 
 def test_writer_rewrites_only_changed_meshes_and_removes_gone_ones(tmp_path):
