@@ -1,4 +1,4 @@
-"""`FrodoNode`: the base of every FroDO node (parameters from specs, 1 Hz diagnostics, guarded callbacks)
+"""`FrodoNode`: the base of every FroDO node (parameters from specs, diagnostics every `diagnostics_period` (0.5 s), guarded callbacks)
 and `run_node`, the `main()` shared by all node entry points.
 
 A node never crashes the graph on bad input: callbacks wrapped with `guarded` log the error, count it,

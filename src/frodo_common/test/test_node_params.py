@@ -60,8 +60,8 @@ def test_a_set_at_run_time_is_refused_with_the_read_only_reason():
         future = client.get_parameters(['threshold', 'diagnostics_period'])
         executor.spin_until_future_complete(future, timeout_sec=20.0)
         assert future.done()
-        assert [v.double_value for v in future.result().values] == [0.75, 1.0]
-        assert node.params['threshold'] == 0.75 and node.params['diagnostics_period'] == 1.0
+        assert [v.double_value for v in future.result().values] == [0.75, 0.5]
+        assert node.params['threshold'] == 0.75 and node.params['diagnostics_period'] == 0.5
         executor.shutdown()
         caller.destroy_node()
         node.destroy_node()
