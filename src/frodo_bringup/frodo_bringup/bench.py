@@ -103,12 +103,8 @@ def _stats_ms(values_ms) -> dict[str, float]:
 def machine_info(device: str) -> dict[str, Any]:
     """What the figures were measured on."""
     import torch
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open('/proc/cpuinfo') as fh:
-            cpu = next((line.split(':', 1)[1].strip() for line in fh if line.startswith('model name')), cpu)
-    except OSError:
-        pass
+    from frodo_common.host import cpu_model
+    cpu = cpu_model()
     try:
         # The checkout it runs in (the working directory's, where the bag and bench/ come from); '' outside one.
         commit = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], capture_output=True,

@@ -39,6 +39,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from frodo_common.host import cpu_model, memory_gb
+
 DEFAULT_PAGE = Path('docs/results.md')
 DEFAULT_WORK = Path('out/report')
 HELDOUT_WALK_SEEDS = (7301, 7302, 7303, 7304)
@@ -132,21 +134,10 @@ def commit_key(repo: Path = Path('.')) -> str:
 def machine() -> dict:
     """What the figures were measured on: CPU model, cores, memory, torch and its threads, GPU."""
     import torch
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path('/proc/cpuinfo').read_text().splitlines():
-            if line.startswith('model name'):
-                cpu = line.split(':', 1)[1].strip()
-                break
-    except OSError:
-        pass
-    try:
-        memory_gb = os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES') / 2 ** 30
-    except (ValueError, OSError, AttributeError):
-        memory_gb = float('nan')
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else 'none'
-    return {'cpu': cpu, 'cores': os.cpu_count(), 'memory_gb': round(memory_gb, 1), 'python': platform.python_version(),
-            'torch': torch.__version__, 'torch_threads': torch.get_num_threads(), 'gpu': gpu}
+    return {'cpu': cpu_model(), 'cores': os.cpu_count(), 'memory_gb': round(memory_gb(), 1),
+            'python': platform.python_version(), 'torch': torch.__version__, 'torch_threads': torch.get_num_threads(),
+            'gpu': gpu}
 
 
 def run_bag(bag: Path, out_dir: Path, params: Sequence[str | os.PathLike]) -> dict:

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import sys
 import time
 from pathlib import Path
@@ -35,6 +34,7 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
+from frodo_common.host import cpu_model
 from frodo_shape.meshing import grid_points
 from frodo_shape.prior import ShapePrior
 from frodo_shape.sdf_data import SamplingConfig, cached_samples, inside, inside_check
@@ -329,15 +329,7 @@ def compare_point_decoders(prior: ShapePrior, variants=('small', 'paper'), steps
 
 def machine() -> str:
     """One line naming the machine the numbers were measured on."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path('/proc/cpuinfo').read_text().splitlines():
-            if line.startswith('model name'):
-                cpu = line.split(':', 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f'{cpu}, {torch.get_num_threads()} torch threads, torch {torch.__version__}'
+    return f'{cpu_model()}, {torch.get_num_threads()} torch threads, torch {torch.__version__}'
 
 
 def main(argv: list[str] | None = None) -> int:
