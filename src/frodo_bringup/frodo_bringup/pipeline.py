@@ -21,10 +21,11 @@ aside). Python use:
 from __future__ import annotations
 
 import json
+import math
 import os
 import time
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
@@ -56,16 +57,25 @@ class PipelineError(RuntimeError):
     """The configuration is invalid or a layer failed (a bag that cannot give objects: `preflight.BagRefused`)."""
 
 
+def offline_optim_config(config: OptimConfig | None = None) -> OptimConfig:
+    """The optimiser's configuration offline: the node's, without the dense stage's wall-clock bound
+    (`dense_max_seconds`), which keeps a live graph's latency bounded but would make a result depend on how
+    loaded the machine is; iterations bound the work instead."""
+    config = config or OptimConfig()
+    return replace(config, dense=replace(config.dense, max_seconds=math.inf))
+
+
 @dataclass
 class PipelineConfig:
-    """Configuration of every layer; defaults are the nodes' defaults. `detection` and `shape` hold parameter
-    values by name (`frodo_detection.config.PARAMS`, `frodo_shape.encoding.PARAMS`)."""
+    """Configuration of every layer; defaults are the nodes' defaults, except that the dense stage has no
+    wall-clock bound unless a parameter file sets `dense_max_seconds` (`offline_optim_config`). `detection` and
+    `shape` hold parameter values by name (`frodo_detection.config.PARAMS`, `frodo_shape.encoding.PARAMS`)."""
 
     detection: dict[str, Any] = field(default_factory=dict)
     association: AssociationConfig = field(default_factory=AssociationConfig)
     evidence: EvidenceConfig = field(default_factory=EvidenceConfig)
     shape: dict[str, Any] = field(default_factory=dict)
-    optim: OptimConfig = field(default_factory=OptimConfig)
+    optim: OptimConfig = field(default_factory=offline_optim_config)
     world_frame: str = 'world'
 
     @classmethod
@@ -83,6 +93,8 @@ class PipelineConfig:
         association, evidence = config_from_values(sections['association_node'])
         try:
             optim = optim_config({k: v for k, v in sections['optim_node'].items() if k in optim_names})
+            if 'dense_max_seconds' not in sections['optim_node']:
+                optim = offline_optim_config(optim)
             filter_config(sections['detection_node'])
         except (ValueError, TypeError) as err:
             raise PipelineError(f'parameters: {err}') from err
