@@ -36,6 +36,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Reconstruct, write, score when the bag has ground truth; returns the exit code."""
+    from frodo_common.host import reproducible_math
+    reproducible_math()                       # before torch is imported: the same bag gives the same bits
     from frodo_bringup.cli_demo import score_outputs
     from frodo_bringup.graph import GraphError
     from frodo_bringup.pipeline import PipelineConfig, PipelineError, reconstruct

@@ -34,6 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Write the page; returns the exit code."""
+    from frodo_common.host import reproducible_math
+    reproducible_math()                       # before torch is imported (see frodo_common.host)
     from frodo_bringup.report import report
     names = [n.strip() for n in args.sets.split(',') if n.strip()]
     command = ' '.join(['frodo report', *sys.argv[2:]]) if sys.argv[1:2] == ['report'] else 'frodo report'

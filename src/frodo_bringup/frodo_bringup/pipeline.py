@@ -11,8 +11,10 @@ encoder + code fusion (`frodo_shape.encoding.CodeEncoder`) -> per-object fused -
 
 The live graph converges to the same object map when its optimiser catches up; offline nothing waits for the
 clock, and the result depends only on the bag and the configuration: same inputs, same `objects.json` (timings
-aside). Python use:
+aside; bit for bit when MKL is asked for reproducible results before torch is imported, as `frodo reconstruct`
+does: `frodo_common.host.reproducible_math()`). Python use:
 
+    from frodo_common.host import reproducible_math; reproducible_math()   # first, before torch
     from frodo_bringup.pipeline import PipelineConfig, reconstruct
     result = reconstruct('bags/demo_walk.mcap', PipelineConfig.from_params_files(['my.yaml']))
     result.write('out/offline')          # objects.json + meshes/, as `frodo run --out` writes them
