@@ -28,21 +28,11 @@ import numpy as np
 
 from frodo_association.config import KEYFRAME_SETTINGS, AssociationConfig
 from frodo_association.evidence import contact_edges, surface_depths
+from frodo_common.host import cpu_model
 from frodo_common.frames import depth_to_metres
 from frodo_association.synthetic import make_scene
 from frodo_association.tracker import Associator, detections_from_instances
 from frodo_common.geometry import invert_transform
-
-
-def _cpu_name() -> str:
-    try:
-        with open('/proc/cpuinfo') as fh:
-            for line in fh:
-                if line.startswith('model name'):
-                    return line.split(':', 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def main() -> int:
@@ -88,7 +78,7 @@ def main() -> int:
         stats = pstats.Stats(profiler)
         stats.sort_stats('cumulative').print_stats(r'frodo_association|robust_lsq', 25)
     a, r = np.array(t_assoc), np.array(t_refine)
-    print(f'machine: {platform.node()} | {_cpu_name()} | {os.cpu_count()} logical CPUs | '
+    print(f'machine: {platform.node()} | {cpu_model()} | {os.cpu_count()} logical CPUs | '
           f'python {platform.python_version()} | numpy {np.__version__} | load avg {os.getloadavg()[0]:.1f}')
     print(f'scene: {args.scene}, {len(scene.objects)} objects, {len(scene.frames)} frames 640x480, detections per frame:'
           f' mean {in_view.mean():.1f} (min {in_view.min()}), tracks at the end: {len(assoc.confirmed_tracks())}')
