@@ -157,6 +157,18 @@ def family_pool(class_name: str, family_set: str = 'train') -> list[str]:
     return pool + (added(class_name) if added else [])
 
 
+def _place(placed: dict, i: int, name: str, mesh, yaw: float, xy, rng: np.random.Generator, family: str,
+           shape_seed: int, clearance: float) -> bool:
+    """Put object i (its bbox-centred canonical mesh lifted so its lowest point touches z = 0) at xy with yaw unless
+    its footprint comes within `clearance` of one already placed; True when placed."""
+    T = make_transform(yaw_matrix(yaw), (xy[0], xy[1], -mesh.bounds[0, 2]))
+    obj = SceneObject(i + 1, name, category_by_name(name).coco_id, mesh, T, Material.random(rng), family, shape_seed)
+    if any(footprints_overlap(obj.footprint, o.footprint, clearance) for o in placed.values()):
+        return False
+    placed[i] = obj
+    return True
+
+
 def compose_scene(n_objects: int = 3, classes: Sequence[str] = ('chair', 'dining table'), seed: int = 0,
                   layout: str = 'walk', clearance: float = 0.12, max_tries: int = 2000,
                   family_set: str = 'train', tuck_chairs: float = 0.0, clutter: int = 0) -> Scene:
@@ -206,12 +218,7 @@ def compose_scene(n_objects: int = 3, classes: Sequence[str] = ('chair', 'dining
                 xy = np.zeros(2)
             else:
                 xy = rng.uniform(-np.asarray(inner) / 2 + half.min(), np.asarray(inner) / 2 - half.min())
-            # bbox-centred canonical mesh: lift it so its lowest point touches z = 0
-            T = make_transform(yaw_matrix(yaw), (xy[0], xy[1], -mesh.bounds[0, 2]))
-            obj = SceneObject(i + 1, name, category_by_name(name).coco_id, mesh, T,
-                              Material.random(rng), family, shape_seed)
-            if not any(footprints_overlap(obj.footprint, o.footprint, clearance) for o in placed.values()):
-                placed[i] = obj
+            if _place(placed, i, name, mesh, yaw, xy, rng, family, shape_seed, clearance):
                 break
         else:
             raise RuntimeError(f'could not place {n_objects} objects ({", ".join(names)}) without overlap; '
@@ -274,11 +281,7 @@ def _place_along_walls(shapes: list, order: list[int], rng: np.random.Generator,
             if slack <= 0:
                 continue
             xy = point + inward * (gap + depth) + along * rng.uniform(-slack, slack)
-            T = make_transform(yaw_matrix(yaw), (xy[0], xy[1], -mesh.bounds[0, 2]))
-            obj = SceneObject(i + 1, name, category_by_name(name).coco_id, mesh, T, Material.random(rng), family,
-                              shape_seed)
-            if not any(footprints_overlap(obj.footprint, o.footprint, clearance) for o in placed.values()):
-                placed[i] = obj
+            if _place(placed, i, name, mesh, yaw, xy, rng, family, shape_seed, clearance):
                 break
         else:
             raise RuntimeError(f'could not place {len(shapes)} objects along the walls without overlap; '
