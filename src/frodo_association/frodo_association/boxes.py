@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from frodo_association.robust_lsq import soft_l1_least_squares
-from frodo_common.geometry import Box3D, box_corners
+from frodo_common.geometry import Box3D
 
 # Corner offsets of a unit box, in the corner order of frodo_common.geometry.box_corners.
 # Typical upright dimensions (long side, short side, height) in metres per COCO class: common real furniture
