@@ -5,8 +5,7 @@ Times `Associator.add_frame` (segments, DP-means step with same-frame exclusivit
 merges, confirmation, pruning with the current boxes: everything before a frame's associations are published)
 and, separately, `Associator.refine_boxes` (at most one 3D box fit per frame, run after publishing), and their
 sum per frame. `--scene walk` (default): a box-world walk where all 10 objects stay in view; `--scene handheld`:
-35 keyframes of the handheld kitchen (`frodo_association.handheld`, real-like masks and drift) with depth and
-`KEYFRAME_SETTINGS`, also
+35 keyframes of the handheld kitchen (`frodo_association.handheld`, real-like masks and drift) with depth, also
 timing the surface depths from depth (`evidence.surface_depths`). The contact edges of the masks
 (`evidence.contact_edges`, computed by the node before `add_frame`) are timed as a row of their own; `total` is
 association + box refinement, as the node's latency. Prints the machine it ran on.
@@ -26,7 +25,7 @@ import time
 
 import numpy as np
 
-from frodo_association.config import KEYFRAME_SETTINGS, AssociationConfig
+from frodo_association.config import AssociationConfig
 from frodo_association.evidence import contact_edges, surface_depths
 from frodo_common.host import cpu_model
 from frodo_common.frames import depth_to_metres
@@ -52,7 +51,7 @@ def main() -> int:
         scene = make_handheld_scene(args.seed, **HANDHELD_CONDITIONS['real-like'])
     dets = [detections_from_instances(f.instances) for f in scene.frames]
     in_view = np.array([len(labels) for labels, _ in dets])
-    assoc = Associator(AssociationConfig(**KEYFRAME_SETTINGS)) if args.scene == 'handheld' else Associator()
+    assoc = Associator(AssociationConfig())
     t_evidence, t_contact, t_assoc, t_refine = [], [], [], []
     profiler = cProfile.Profile(time.process_time) if args.profile else None
     if profiler:

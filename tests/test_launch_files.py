@@ -41,15 +41,11 @@ def test_launch_file_names_the_graph_nodes():
 def test_setup_installs_launch_and_config_files():
     setup = (PACKAGE_DIR / 'setup.py').read_text()
     assert "'/launch', ['launch/frodo.launch.py']" in setup
-    assert "'/config', ['config/frodo.yaml', 'config/keyframes.yaml']" in setup
+    assert "'/config', ['config/frodo.yaml']" in setup
 
 
-def test_keyframes_preset_is_the_association_keyframe_settings_and_resolves_by_name():
-    from frodo_association.config import KEYFRAME_SETTINGS
+def test_shipped_parameter_files_resolve_by_name():
     from frodo_bringup.graph import resolve_params_file, shipped_presets
-    document = yaml.safe_load(share_file('config/keyframes.yaml').read_text())
-    assert document == {'association_node': {'ros__parameters': KEYFRAME_SETTINGS}}
-    assert 'keyframes' in shipped_presets()
-    assert resolve_params_file('keyframes') == share_file('config/keyframes.yaml')
-    assert resolve_params_file('my.yaml') == Path('my.yaml')   # a file name is never taken for a preset
-    assert "'config/keyframes.yaml'" in (PACKAGE_DIR / 'setup.py').read_text()
+    assert shipped_presets() == ['frodo']
+    assert resolve_params_file('frodo') == share_file('config/frodo.yaml')
+    assert resolve_params_file('my.yaml') == Path('my.yaml')   # a file name is never taken for a shipped one

@@ -106,7 +106,9 @@ def test_offline_results_do_not_depend_on_the_machines_load(tmp_path):
     machine it had cut 8 of 78 objects' dense runs short in one report, so two runs of one bag differed."""
     assert PipelineConfig().optim.dense.max_seconds == float('inf')
     assert PipelineConfig.from_params_files([]).optim.dense.max_seconds == float('inf')
-    assert PipelineConfig.from_params_files(['keyframes']).optim.dense.max_seconds == float('inf')
+    other = tmp_path / 'association.yaml'
+    other.write_text('association_node:\n  ros__parameters:\n    confirm_window: 5\n')
+    assert PipelineConfig.from_params_files([other]).optim.dense.max_seconds == float('inf')
     explicit = tmp_path / 'bounded.yaml'
     explicit.write_text('optim_node:\n  ros__parameters:\n    dense_max_seconds: 12.0\n')
     assert PipelineConfig.from_params_files([explicit]).optim.dense.max_seconds == 12.0

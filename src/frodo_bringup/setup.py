@@ -11,7 +11,7 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
         ('share/' + package_name + '/launch', ['launch/frodo.launch.py']),
-        ('share/' + package_name + '/config', ['config/frodo.yaml', 'config/keyframes.yaml']),
+        ('share/' + package_name + '/config', ['config/frodo.yaml']),
     ],
     include_package_data=True,
     install_requires=['setuptools'],

@@ -8,10 +8,12 @@ In:  /frodo/detections (16UC1 instance image), /camera/color/camera_info, /camer
 Out: /frodo/associations (PointCloud2 table, ASSOCIATION_DTYPE, the frame's stamp; re-sent with the original
      stamp when a frame's ids or kept flags change), /frodo/tracks (latched MarkerArray: one CUBE per published
      object, ns = class, id = object id; DELETE for objects merged away or withdrawn).
+When no frame came for settle_after s, the association settles (`Associator.settle`) and publishes the result.
 Frames with missing or invalid camera info / pose / detections are counted, reported and skipped.
 """
 from __future__ import annotations
 
+import time
 from collections import OrderedDict, deque
 from dataclasses import fields
 from typing import Any
@@ -36,6 +38,9 @@ PARAMS: tuple[ParamSpec, ...] = tuple(
     ParamSpec(f.name, getattr(EvidenceConfig(), f.name), EVIDENCE_DOC[f.name]) for f in fields(EvidenceConfig)) + (
     ParamSpec('match_timeout', 2.0, 'Seconds (of stamp time) a frame waits for its missing part (detections or '
               'pose) once a newer frame is complete; then it is dropped and reported.'),
+    ParamSpec('settle_after', 2.0, 'Seconds (wall clock) without a new frame after which the association settles '
+              '(`Associator.settle`: a full pass, merges, and clusters still in view published on their consistent '
+              'detections, as at the end of the input offline); 0: never.'),
     ParamSpec('camera_info_topic', topics.CAMERA_INFO, 'Camera intrinsics topic.'),
     ParamSpec('pose_topic', topics.POSE, 'Camera pose topic (T_world_camera, optical frame).'),
     ParamSpec('depth_topic', '/camera/depth/image_raw', "Optional registered depth (16UC1 mm or 32FC1 m) giving "
@@ -61,6 +66,8 @@ class AssociationNode(FrodoNode):
         self.depth_cache: OrderedDict[int, np.ndarray] = OrderedDict()   # stamp -> depth (m, NaN = none)
         self.slam_points: np.ndarray | None = None
         self.sent_tracks: dict[int, str] = {}   # object id -> class name of the tracks last published
+        self.last_frame_at: float | None = None   # monotonic time of the last associated frame, None: settled
+        self.last_stamp = 0
         self.tracks_pub = self.create_publisher(MarkerArray, topics.TRACKS, topics.LATCHED_QOS)
         self.assoc_pub = self.create_publisher(PointCloud2, topics.ASSOCIATIONS, topics.FRAME_QOS)
         self.create_subscription(Image, topics.DETECTIONS, self.guarded(self._on_detections, 'detections'),
@@ -73,6 +80,8 @@ class AssociationNode(FrodoNode):
         if p['slam_points_topic']:
             self.create_subscription(PointCloud2, p['slam_points_topic'], self.guarded(self._on_slam_points, 'slam_points'),
                                      topics.FRAME_QOS)
+        if p['settle_after'] > 0:
+            self.create_timer(min(0.5, p['settle_after']), self.guarded(self._settle_when_idle, 'settle'))
 
     # ------------------------------------------------------------ inputs
     def _on_detections(self, msg: Image) -> None:
@@ -169,6 +178,19 @@ class AssociationNode(FrodoNode):
         self.count('merges', sum(1 for v in update.removed.values() if v >= 0))
         if result.tracks_changed:
             self._publish_tracks(stamp, frame_id)
+        self.last_frame_at, self.last_stamp = time.monotonic(), stamp
+
+    def _settle_when_idle(self) -> None:
+        """After settle_after s without frames: settle once and publish what changed (rows, tracks)."""
+        if self.last_frame_at is None or time.monotonic() - self.last_frame_at < self.params['settle_after']:
+            return
+        self.last_frame_at = None
+        update = self.associator.settle()
+        frame_id = self.params['world_frame']
+        self._republish(update.republish, frame_id)
+        self.count('merges', sum(1 for v in update.removed.values() if v >= 0))
+        self.count('settled')
+        self._publish_tracks(self.last_stamp, frame_id)
 
     def _table_msg(self, table: np.ndarray, stamp: int, frame_id: str) -> PointCloud2:
         msg = conv.table_to_cloud(table, stamp, frame_id)
@@ -202,7 +224,6 @@ class AssociationNode(FrodoNode):
         fmt = lambda d, f: f'{f(d):.2f}' if d else 'n/a'       # noqa: E731
         return {'objects': len(self.associator.confirmed_tracks()), 'clusters': len(self.associator.tracks),
                 'detections': len(self.associator.rows), 'frames_cached': len(self.cache),
-                'keyframe_input': self.associator.keyframe_input,
                 'frames_unmatched': self.cache.evicted_incomplete,
                 'association_ms_mean': fmt(lat, np.mean), 'association_ms_max': fmt(lat, np.max),
                 'refine_ms_mean': fmt(self.refine_ms, np.mean), 'refine_ms_max': fmt(self.refine_ms, np.max),

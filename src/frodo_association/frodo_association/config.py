@@ -53,11 +53,10 @@ class AssociationConfig:
     complete_truncated: bool = True
     flat_segments: bool = True
     occluded_fraction: float = 0.5
-    confirm_views: int = 0
-    view_separation: float = 0.3
-    auto_keyframes: bool = True
-    height_prior_weight: float = 0.0
+    height_prior_weight: float = 0.2
     box_overlap_merge: float = 0.3
+    confirm_distance: float = 0.2
+    explained_inside: float = 0.8
 
 
 CONFIG_DOC: dict[str, str] = {
@@ -66,7 +65,7 @@ CONFIG_DOC: dict[str, str] = {
     'merge_distance': 'Clusters of one class whose centres come closer than this (m) are merged; the older id survives.',
     'full_pass_every': 'Frames between full DP-means EM passes over all segments (0: never).',
     'full_pass_distance': 'A full pass also runs once the camera has travelled this far (m) since the last one '
-                          '(0: off; KEYFRAME_SETTINGS: 1.5, as 20 keyframes can span a whole sequence).',
+                          '(0: off).',
     'max_em_iterations': 'Maximum EM iterations of a full pass.',
     'reassign_ratio': 'Full-pass hysteresis: a detection moves to another cluster only if that centre is closer '
                       'than this times the distance to its own (1: plain DP-means re-assignment).',
@@ -84,21 +83,23 @@ CONFIG_DOC: dict[str, str] = {
                                  'retired: they keep what was last published and are no longer clustered, pruned or '
                                  'republished; its box and published state stay); a detection unassigned for this '
                                  'many frames is retired too.',
-    'min_track_views': 'Reliable detections (not truncated, at least min_box_width x min_box_height, scaled) a '
-                       'cluster needs before it is published as an object.',
+    'min_track_views': 'Frames with mutually consistent detections (confirm_distance) a cluster needs before it is '
+                       'published, one of them reliable (not truncated, at least min_box_width x min_box_height, '
+                       'scaled); cut and occluded detections count.',
     'min_hit_ratio': 'A cluster is published once it was detected in at least this fraction of the frames whose '
                      'image contains its centre (since its first detection).',
-    'confirm_window': 'Frames with the cluster centre in view (since its first detection) before the hit ratio '
-                      'may publish it.',
+    'confirm_window': 'A cluster whose centre is still in view waits until it has been in view this many frames '
+                      '(since its first detection) before it is published (a live map does not publish an object '
+                      'from its first partial views); once it left the view, or at the end of the input, its '
+                      'consistent detections suffice.',
     'drop_hit_ratio': 'A published cluster whose hit ratio falls below this (checked at full passes) is withdrawn.',
     'truncated_opens_clusters': 'Let detections touching the image border open new clusters and count towards '
                                 'publishing one (their box centre and size are biased).',
     'truncated_min_views': 'Deferred opening (own extension, not in the paper): at full passes, unassigned '
                            'truncated detections farther than lambda from every centre of their class are clustered '
                            'among themselves (DP-means, lambda); a group with detections from at least this many '
-                           'frames opens a cluster (0: off), which its truncated detections may publish; in any '
-                           'cluster, truncated detections count towards publishing once it has this many reliable '
-                           'plus truncated ones (a table never seen whole).',
+                           'frames opens a cluster (0: off), which its truncated detections may publish without a '
+                           'reliable one (a table never seen whole).',
     'truncated_merge_distance': 'A cluster opened by the deferred rule merges with a cluster of its class closer than '
                                 'this (m) (its centre is biased by the truncation); groups this close to an existing '
                                 'cluster open none.',
@@ -141,32 +142,23 @@ CONFIG_DOC: dict[str, str] = {
     'occluded_fraction': 'A detection with a surface depth, not cut by the top or bottom border, whose box is lower '
                          'than this fraction of the class\'s typical height projected at that depth is occluded: it '
                          'joins clusters but opens none and does not count towards publishing (0: off).',
-    'confirm_views': 'Keyframe rule: a cluster with min_track_views reliable detections and the hit ratio whose '
-                     'centre left the view before confirm_window frames is published when its detections come from '
-                     'this many distinct viewpoints (camera centres at least view_separation apart), one still in '
-                     'view from twice as many (0: off; '
-                     'KEYFRAME_SETTINGS: 3 for keyframe input, off for video, where it published spurious clusters).',
-    'view_separation': 'Camera centres closer than this (m) count as one viewpoint for confirm_views.',
-    'auto_keyframes': 'Keyframe input is recognised and KEYFRAME_SETTINGS applied (when confirm_views is 0): once '
-                      'the median camera rotation per frame (over all frames, from 2 x confirm_window on) times '
-                      'confirm_window exceeds '
-                      'twice the horizontal field of view, an object crossing the view stays in it for fewer than '
-                      'half the confirm_window frames (keyframes far apart: 13-25 deg per frame; video-rate walks '
-                      '4-5, an orbit 10).',
-    'height_prior_weight': 'Weight of the class height prior (log-height residual against the typical height of '
-                           'the class, CLASS_SHAPES) in the box fit; the horizontal sizes keep size_prior_weight.',
+
+
+    'height_prior_weight': 'Weight of the class shape prior in the box fit (0: the isotropic size prior alone): '
+                           'log-height residual against the typical height of the class (CLASS_SHAPES) with this '
+                           'weight, horizontal sizes against the class\'s typical sqrt(long x short) with '
+                           'size_prior_weight. Seen from one side, with the bottom hidden, the depth of a box is '
+                           'fixed by its size alone (the isotropic prior put chairs behind tables 0.2-1.8 m too far).',
     'box_overlap_merge': 'At full passes, two published objects of one class whose 3D box footprints overlap by at '
                          'least this fraction of the smaller footprint are merged (the older id survives; > 1: off).',
+    'confirm_distance': 'Publishing: a detection is consistent with its cluster when its segment passes within this '
+                        'distance (m) of the cluster centre; a cluster needs consistent detections in min_track_views '
+                        'frames.',
+    'explained_inside': 'A detection box lying at least this fraction inside the (clipped) projected 3D box of another '
+                        'published object of its class is explained by it too (a partial view: the top of a chair '
+                        'behind a table, whose biased centre ray opened a cluster of its own) (> 1: off).',
 }
 assert set(CONFIG_DOC) == {f.name for f in fields(AssociationConfig)}
-
-KEYFRAME_SETTINGS: dict[str, object] = {'confirm_views': 3, 'full_pass_distance': 1.5}
-"""Settings for keyframe input (sparse views far apart, e.g. 35 SLAM keyframes over a sequence): objects seen in few
-keyframes are published once they leave the view, and full passes come every 1.5 m of camera travel (20 frames can
-span a whole sequence). Off by default: on the video-rate box-world walks (held-out seeds 100-119) the confirmation
-rule published one spurious cluster that left the view after 3 viewpoints, and on the dense layout the extra full
-passes added a duplicate and a false track."""
-
 
 @dataclass(frozen=True)
 class EvidenceConfig:

@@ -17,14 +17,13 @@ Metrics (per scene, then pooled over scenes):
 Usage: python -m frodo_association.evaluate [--seeds 100-119] [--objects 2-5] [--frames 60]
        [--layout walk|dense|furniture] [--conditions NAME,...] [--no-ablation] [--json OUT]
        python -m frodo_association.evaluate --layout handheld [--seeds 100-105] [--conditions real-like,...]
-           [--variants base,...] [--evidence depth,landmarks|depth|landmarks|none] [--before]
-           (with config.KEYFRAME_SETTINGS; --before: BEFORE_KEYFRAMES and no evidence)
+           [--variants base,...] [--evidence depth,landmarks|depth|landmarks|none]
            (keyframes of a handheld kitchen capture, `handheld.py`; one row per condition and variant with
            recall, false tracks per scene (duplicates included) and the median centre error)
        python -m frodo_association.evaluate --bags A.mcap [B.mcap ...] [--pool] [--conditions NAME,...]
-           [--keyframes] [--set NAME=VALUE,...] [--evidence ...] [--trace]
+           [--set NAME=VALUE,...] [--evidence ...] [--trace]
            (contract bags with ground truth, their /slam/points maps giving surface depths; by default clean,
-           one row per bag; --pool: one row per condition; --keyframes: KEYFRAME_SETTINGS; --set: other
+           one row per bag; --pool: one row per condition; --set:
            AssociationConfig values; --trace: per ground-truth object, why it is or is not published)
 """
 from __future__ import annotations
@@ -40,7 +39,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from frodo_association.boxes import box_iou, canonical_yaw, clip_boxes
-from frodo_association.config import KEYFRAME_SETTINGS, AssociationConfig
+from frodo_association.config import AssociationConfig
 from frodo_association.evidence import contact_edges, surface_depths
 from frodo_common.frames import depth_to_metres
 from frodo_association.tracker import Associator
@@ -135,8 +134,7 @@ def run_scene(scene: SynthScene, cfg: AssociationConfig, filt: FilterConfig,
         res.refine_ms.append(1e3 * (time.perf_counter() - t1))
         gt_rows += [frame.gt.get(int(lab), -1) for lab in labels]
         vis_rows += [frame.visibility.get(int(lab), np.nan) for lab in labels]
-    while assoc.refine_boxes(max_fits=100).fitted:     # final boxes of the whole sequence
-        pass
+    assoc.settle()     # end of the sequence: final pass, confirmation and boxes
     gt = np.array(gt_rows, dtype=np.int64)
     vis = np.array(vis_rows)
     tables = np.concatenate([assoc.frame_table(int(s)) for s in assoc.frames.stamp])
@@ -380,8 +378,6 @@ def draw_scene_result(scene: SynthScene, res: SceneResult, path: str, title: str
     plt.close(fig)
 
 
-BEFORE_KEYFRAMES = {'confirm_views': 0, 'full_pass_distance': 0.0, 'box_overlap_merge': 2.0, 'whole_view_centers': False}
-"""Settings that reproduce the association before the keyframe front end (no evidence given either)."""
 HANDHELD_HEADER = ('| condition | variant | evidence | scenes | objects | recall | false / scene | dup | false | '
                    'median centre err (m) | mean centre err (m) | size err (m) | yaw err (deg) | assoc ms | refine ms |')
 
@@ -426,17 +422,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--variants', default='base', help='handheld: comma-separated subset of: ' + ', '.join(HANDHELD_VARIANTS))
     ap.add_argument('--evidence', default='depth,landmarks',
                     help="handheld: surface depth from 'depth', 'landmarks', both (depth first) or 'none'")
-    ap.add_argument('--keyframes', action='store_true', help='with --bags: config.KEYFRAME_SETTINGS (the '
-                    "'keyframes' parameter preset)")
     ap.add_argument('--set', default='', metavar='NAME=VALUE,...', help='override AssociationConfig fields')
     ap.add_argument('--trace', action='store_true', help='with --bags: per ground-truth object, why it is or is '
                     'not published (`trace_objects`)')
-    ap.add_argument('--before', action='store_true', help='handheld: the association settings before the keyframe '
-                    'front end (BEFORE_KEYFRAMES), no evidence')
     args = ap.parse_args(argv)
     filt = FilterConfig()
     base = AssociationConfig()
-    overrides = dict(KEYFRAME_SETTINGS) if args.keyframes else {}
+    overrides = {}
     for item in filter(None, args.set.split(',')):
         key, _, value = item.partition('=')
         kind = type(getattr(base, key.strip()))
@@ -444,11 +436,10 @@ def main(argv: list[str] | None = None) -> int:
     base = replace(base, **overrides)
     out = {'machine': f'{platform.node()} ({platform.processor() or platform.machine()})', 'results': {}}
     if args.layout == 'handheld':
-        evidence = () if args.before or args.evidence == 'none' else tuple(args.evidence.split(','))
-        cfg = replace(base, **BEFORE_KEYFRAMES) if args.before else replace(base, **KEYFRAME_SETTINGS)
+        evidence = () if args.evidence == 'none' else tuple(args.evidence.split(','))
+        cfg = base
         seeds = _range(args.seeds)
-        print(f'# association evaluation: handheld keyframes, seeds {args.seeds}, {out["machine"]}'
-              + (' (settings before the keyframe front end)' if args.before else ''))
+        print(f'# association evaluation: handheld keyframes, seeds {args.seeds}, {out["machine"]}')
         print(HANDHELD_HEADER)
         print('|' + '---|' * (HANDHELD_HEADER.count('|') - 1))
         handheld_rows(seeds, [c.strip() for c in (args.conditions or ','.join(HANDHELD_CONDITIONS)).split(',')],

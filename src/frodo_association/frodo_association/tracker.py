@@ -12,7 +12,7 @@ Same-frame duplicates and splits: when a merge or a full pass puts two detection
 object, the one nearer the centre keeps it and the other is ignored (object id -1); a segment within
 lambda of a centre that a closer detection of its frame already holds is ignored rather than opening a
 cluster (a split mask or a duplicate detection). Detections touching the image border or smaller than
-the pruning size are "unreliable": they join clusters but open none and do not count towards publishing.
+the pruning size are "unreliable": they join clusters but open none (they count as consistent evidence).
 Always-truncated objects (the project's own extension; the paper does not address them): truncated
 detections that stay unassigned and lie farther than lambda from every centre of their class are pooled;
 at each full pass the pool of a class is clustered among itself with the same segment DP-means (leader
@@ -27,11 +27,13 @@ publishing (until it has min_track_views reliable ones) and merges with a cluste
 detections are explained by another published object's box is merged into it (`merge_explained`), so an
 object first seen truncated and later whole is not duplicated by the biased centres of its truncated views
 (this also merges the two halves of a long table seen from its ends, whose centres stay apart).
-Publishing ("confirmed"): a cluster is published once it has `min_track_views` reliable detections, has
-been in view (its centre projects into the image) for `confirm_window` frames since its first detection,
-and was detected in at least `min_hit_ratio` of them; a published cluster whose hit ratio drops below
-`drop_hit_ratio` (checked at full passes) is withdrawn. This removes the short-lived clusters opened by
-occluded detections, whose box centres are off. Unpublished clusters' detections carry object id -1.
+Publishing ("confirmed") from geometry, not from frame counts: a cluster is published once its detections in
+`min_track_views` frames are mutually consistent (their segments pass within `confirm_distance` of its centre;
+detections cut by the border or by a nearer instance count), one of them reliable, and it was detected in at least
+`min_hit_ratio` of the frames with its centre in view; while its centre is still in view it waits until it has
+been in view for `confirm_window` frames (at the end of the input, `settle`, it does not). A spurious detection
+in one frame never meets this; a piece of furniture seen from one side in 3 keyframes far apart does. A
+published cluster whose hit ratio drops below `drop_hit_ratio` (checked at full passes) is withdrawn. Unpublished clusters' detections carry object id -1.
 
 Pixel sizes (min_box_width, min_box_height) are given for a 640x480 image and scaled by
 s = sqrt(W * H / (640 * 480)) for a W x H image (`frodo_detection.core.resolution_scale`); border_margin
@@ -44,7 +46,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from frodo_association.boxes import CLASS_SHAPES, Box3D, box_iou, clip_boxes, fit_box, footprint_overlap, project_boxes
-from frodo_association.config import ASSOCIATION_DTYPE, KEYFRAME_SETTINGS, AssociationConfig
+from frodo_association.config import ASSOCIATION_DTYPE, AssociationConfig
 from frodo_association.pruning import prune_detections
 from frodo_association.segments import (box_segments, clip_segments_to_heights, complete_truncated_boxes,
                                         depth_intervals, gated_assignment, lsq_center, lsq_centers,
@@ -155,6 +157,7 @@ class Associator:
                            label=((), np.int64, 0), coco=((), np.int64, 0),
                            frame=((), np.int64, 0), assign=((), np.int64, -1), kept=((), bool, False),
                            valid=((), bool, False), reliable=((), bool, False), truncated=((), bool, False),
+                           evidence=((), bool, False),
                            sent_id=((), np.int64, -1), sent_kept=((), bool, False),   # as last published
                            slot=((), np.int64, 0))                                    # position in its frame
         self.frames = _Table(stamp=((), np.int64, 0), K=((3, 3), np.float64, 0.0),
@@ -167,9 +170,6 @@ class Associator:
         self._frames_since_pass = 0                 # full-pass cadence: frames and camera travel since the last
         self._travel = 0.0
         self._last_eye: np.ndarray | None = None
-        self._turns: list[float] = []               # camera rotation (rad) between consecutive frames
-        self._last_rotation: np.ndarray | None = None
-        self.keyframe_input = False                 # auto_keyframes switched to KEYFRAME_SETTINGS
         self._corners: dict[int, tuple[Box3D, np.ndarray]] = {}   # object id -> (its box, that box's corners)
         # Retired detections (max_detections_per_object) of frames that still hold live rows: frame index ->
         # (positions in the frame (k,), their last published rows (k,) ASSOCIATION_DTYPE), for republishing.
@@ -196,8 +196,6 @@ class Associator:
         """
         if stamp in self.frame_index:
             return AssociationUpdate(stamp, self.frame_table(stamp))
-        self._recognise_keyframes(np.asarray(T_world_camera, dtype=np.float64), np.asarray(K, dtype=np.float64),
-                                  size[0])
         cfg = self.cfg
         labels = np.asarray(labels, dtype=np.int64).reshape(-1)
         boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
@@ -262,7 +260,8 @@ class Associator:
                                 label=labels, coco=coco,
                                 frame=np.full(len(labels), fi), assign=np.full(len(labels), -1),
                                 kept=np.zeros(len(labels), bool), valid=valid, slot=np.arange(len(labels)),
-                                reliable=valid & big_enough & opens, truncated=valid & big_enough & truncated & ~evidence_opens)
+                                reliable=valid & big_enough & opens, truncated=valid & big_enough & truncated & ~evidence_opens,
+                                evidence=valid & big_enough)
         self.frames.append(stamp=[stamp], K=K[None], T_world_camera=T_world_camera[None],
                            T_camera_world=invert_transform(T_world_camera)[None], size=[(w, h)],
                            start=[rows.start], stop=[rows.stop])
@@ -301,27 +300,29 @@ class Associator:
         self._retire_history()
         return update
 
-    def _recognise_keyframes(self, T_world_camera: np.ndarray, K: np.ndarray, width: int) -> None:
-        """auto_keyframes: switch to KEYFRAME_SETTINGS (for good) once the input looks like keyframes far apart,
-        i.e. an object crossing the view would stay in it for fewer than half the confirm_window frames: median
-        rotation per frame x confirm_window > 2 x horizontal field of view, over all frames so far once there are
-        2 x confirm_window of them (a walk may start with a fast turn; clusters of earlier keyframes that left
-        the view unpublished are published by the keyframe rule then). The baseline
-        between frames does not separate the two (0.2-0.4 m on the rendered walks, 0.5-0.6 m between keyframes);
-        the rotation does (4-5 deg per frame on the walks, 10 on an orbit, 13-25 between hand-held keyframes)."""
-        R = T_world_camera[:3, :3]
-        if self._last_rotation is not None:
-            cos = (np.trace(self._last_rotation.T @ R) - 1.0) / 2.0
-            self._turns.append(float(np.arccos(np.clip(cos, -1.0, 1.0))))
-        self._last_rotation = R.copy()
-        cfg = self.cfg
-        if not cfg.auto_keyframes or cfg.confirm_views > 0 or len(self._turns) < 2 * cfg.confirm_window \
-                or not np.all(np.isfinite(R)):
-            return
-        fov = 2.0 * np.arctan(width / (2.0 * K[0, 0]))
-        if np.median(self._turns) * cfg.confirm_window > 2.0 * fov:
-            self.cfg = replace(cfg, **KEYFRAME_SETTINGS)
-            self.keyframe_input = True
+    def settle(self) -> AssociationUpdate:
+        """End of the input (or a pause): a full pass, the merges, and confirmation as if every cluster had left
+        the view (an object still in view in the last frames is published on its consistent detections), then
+        pruning of every frame with the final boxes. Returns what changed (republish stamps, removed ids)."""
+        dirty, removed = self.full_pass()
+        gone, merge_frames = self.merge_explained()
+        removed.update(gone)
+        dirty |= merge_frames
+        merged, merge_frames = self.merge_close()
+        removed.update(merged)
+        dirty |= merge_frames
+        confirm_frames, dropped = self._update_confirmation(recheck=True, final=True)
+        removed.update(dropped)
+        dirty |= confirm_frames
+        republish: set[int] = set()
+        while (refined := self.refine_boxes(max_fits=100)).fitted:
+            republish.update(refined.republish)
+        every = list(range(len(self.frames)))
+        self._prune_frames(every)
+        self._keep_best_views(set(every))
+        republish.update(self._changed_stamps(set(every)))
+        removed = {k: v for k, v in removed.items() if not (k in self.tracks and self.tracks[k].confirmed)}
+        return AssociationUpdate(republish=sorted(republish), removed=removed, tracks_changed=True)
 
     def refine_boxes(self, max_fits: int | None = None) -> AssociationUpdate:
         """Fit the boxes of the objects that grew most since their last fit (at most `max_fits`, default
@@ -535,6 +536,13 @@ class Associator:
         proj, valid = project_boxes(self.frames.K[fis], self.frames.T_camera_world[fis], self._box_corners(boxed))
         proj, valid = clip_boxes(proj, self.frames.size[fis])[at], valid[at]
         iou = box_iou(self.rows.box[rows][:, None, :], proj)
+        if self.cfg.explained_inside <= 1.0:
+            det = self.rows.box[rows][:, None, :]
+            inter = np.clip(np.minimum(det[..., 2], proj[..., 2]) - np.maximum(det[..., 0], proj[..., 0]), 0, None) \
+                * np.clip(np.minimum(det[..., 3], proj[..., 3]) - np.maximum(det[..., 1], proj[..., 1]), 0, None)
+            area = np.maximum((det[..., 2] - det[..., 0]) * (det[..., 3] - det[..., 1]), 1e-9)
+            inside = inter / area >= self.cfg.explained_inside
+            iou = np.where(inside, np.maximum(iou, self.cfg.truncated_explained_iou), iou)
         ids = np.array([t.object_id for t in boxed])
         classes = np.array([t.coco_id for t in boxed])
         ok = valid & (classes[None, :] == self.rows.coco[rows][:, None]) & (ids[None, :] != self.rows.assign[rows][:, None])
@@ -781,76 +789,61 @@ class Associator:
         n_view = int(np.count_nonzero(in_view | hit))
         return float(np.count_nonzero(hit)) / max(n_view, 1), n_view, bool(in_view[-1] | hit[-1])
 
-    def distinct_views(self, object_id: int, reliable_only: bool = True) -> int:
-        """Viewpoints of a cluster's detections: its frames' camera centres counted greedily (in frame order), a
-        centre within view_separation of one already counted adding nothing."""
+    def consistent_frames(self, object_id: int) -> int:
+        """Frames with a detection of the cluster (valid and at least the pruning size; cut by the border or a
+        nearer instance or not) whose segment passes within confirm_distance of the cluster centre: detections
+        whose rays meet in one place (with surface depths from depth or landmarks, their short segments meet in
+        3D; without, the rays at least agree)."""
         rows = self.members(object_id)
-        if reliable_only:
-            rows = rows[self.rows.reliable[rows]]
-        eyes = self.frames.T_world_camera[np.unique(self.rows.frame[rows])][:, :3, 3]
-        kept: list[np.ndarray] = []
-        for e in eyes:
-            if not kept or np.min(np.linalg.norm(np.array(kept) - e, axis=1)) >= self.cfg.view_separation:
-                kept.append(e)
-        return len(kept)
+        rows = rows[self.rows.evidence[rows]]
+        if not len(rows):
+            return 0
+        d = point_segment_distance(self.tracks[object_id].center[None], self.rows.segment[rows])[:, 0]
+        return len(np.unique(self.rows.frame[rows[d <= self.cfg.confirm_distance]]))
 
-    def publish_blocker(self, object_id: int, reliable: int | None = None, with_truncated: int | None = None
-                        ) -> str | None:
+    def publish_blocker(self, object_id: int, reliable: int | None = None, final: bool = False) -> str | None:
         """Why an unpublished cluster is not published (the first publishing condition it fails, in words), or
-        None when it meets the rule (`_update_confirmation` publishes it then). reliable / with_truncated: its
-        reliable detections and its reliable plus truncated ones (counted when None).
-        Its truncated detections count towards publishing while it was opened by the deferred truncated rule,
-        and also once they and the reliable ones come from truncated_min_views frames (the standard of that
-        rule): a table never seen whole, whose cluster one reliable detection opened, is published like one
-        the deferred rule opened (one detection per frame, so detections are frames)."""
+        None when it meets the rule (`_update_confirmation` publishes it then). reliable: its reliable detections
+        (counted when None); final: the input has ended (`settle`), so a cluster still in view does not wait.
+
+        Confirmation from geometry: the cluster needs detections in min_track_views frames whose segments pass
+        within confirm_distance of its centre (`consistent_frames`; cut and occluded detections count), one of
+        them reliable (or opened by the deferred truncated rule), and a hit ratio of at least min_hit_ratio over
+        the frames with its centre in view; however narrow the range of viewpoints and however far apart the
+        frames. A cluster whose centre is still in view waits until it has been in view for confirm_window frames
+        (a live map does not publish an object from its first partial views), unless `final`."""
         cfg = self.cfg
         t = self.tracks[object_id]
-        if reliable is None or with_truncated is None:
+        if reliable is None:
             rows = self.members(object_id)
             reliable = int(np.count_nonzero(self.rows.reliable[rows]))
-            with_truncated = int(np.count_nonzero(self.rows.reliable[rows] | self.rows.truncated[rows]))
-        pooled = t.from_truncated or 0 < cfg.truncated_min_views <= with_truncated
-        evidence = with_truncated if pooled else reliable
-        if evidence < cfg.min_track_views:
-            return f'{evidence} reliable detections < min_track_views {cfg.min_track_views}'
+        if reliable < 1 and not t.from_truncated:
+            return 'no reliable detection (all cut, occluded or too small)'
+        frames = self.consistent_frames(object_id)
+        if frames < cfg.min_track_views:
+            return (f'consistent detections in {frames} frames < min_track_views {cfg.min_track_views} '
+                    f'(confirm_distance {cfg.confirm_distance} m)')
         ratio, n_view, in_view = self._view_stats(object_id)
         if ratio < cfg.min_hit_ratio:
             return f'hit ratio {ratio:.2f} < min_hit_ratio {cfg.min_hit_ratio} ({n_view} frames in view)'
-        if n_view >= cfg.confirm_window:
-            return None
-        if cfg.confirm_views <= 0:
-            return f'{n_view} frames in view < confirm_window {cfg.confirm_window} (keyframe rule off)'
-        views = self.distinct_views(object_id, not pooled)
-        if in_view and views < 2 * cfg.confirm_views:     # an object still in view at the sequence's end, too
-            return (f'{n_view} frames in view < confirm_window {cfg.confirm_window}, still in view from {views} '
-                    f'viewpoints < 2 x confirm_views {cfg.confirm_views}')
-        if views < cfg.confirm_views:
-            return f'{views} viewpoints < confirm_views {cfg.confirm_views}'
+        if in_view and n_view < cfg.confirm_window and not final:
+            return f'still in view, {n_view} frames in view < confirm_window {cfg.confirm_window}'
         return None
 
-    def _update_confirmation(self, recheck: bool) -> tuple[set[int], dict[int, int]]:
-        """Confirm clusters (`publish_blocker` says None) with at least min_track_views reliable detections (not
-        truncated, not too small: those that may open clusters; truncated ones count for clusters opened by the
-        deferred truncated rule and once there are truncated_min_views of them with the reliable ones), in
-        view for at least confirm_window frames and a hit ratio of at least
-        min_hit_ratio; with `recheck`, withdraw confirmed clusters whose hit ratio fell below drop_hit_ratio
-        (over at least 2 * min_track_views frames in view). Keyframe rule (confirm_views > 0): a cluster whose
-        centre has left the view before confirm_window frames (sparse keyframes: an object in view in 3 of 35)
-        is published when its detections come from confirm_views distinct viewpoints (views far apart are
-        independent evidence, as consecutive video frames are not); while in view it needs twice as many (not
-        the first partial views, but an object still in view when the sequence ends is published too).
-        Returns (frames whose rows change, withdrawn ids)."""
+    def _update_confirmation(self, recheck: bool, final: bool = False) -> tuple[set[int], dict[int, int]]:
+        """Publish clusters that meet the rule (`publish_blocker` says None; `final`: the input has ended); with
+        `recheck`, withdraw published clusters whose hit ratio fell below drop_hit_ratio (over at least
+        2 * min_track_views frames in view). A cluster opened by the deferred truncated rule becomes an ordinary
+        one once it has min_track_views reliable detections. Returns (frames whose rows change, withdrawn ids)."""
         cfg = self.cfg
         counts = np.bincount(self.rows.assign[(self.rows.assign >= 0) & self.rows.reliable], minlength=self.next_id)
-        all_counts = np.bincount(self.rows.assign[(self.rows.assign >= 0) & (self.rows.reliable | self.rows.truncated)],
-                                 minlength=self.next_id)
         changed: list[int] = []
         withdrawn: dict[int, int] = {}
         for t in self.tracks.values():
             if t.from_truncated and counts[t.object_id] >= cfg.min_track_views:
                 t.from_truncated = False          # now seen whole often enough: an ordinary cluster
             if not t.confirmed:
-                if self.publish_blocker(t.object_id, int(counts[t.object_id]), int(all_counts[t.object_id])) is None:
+                if self.publish_blocker(t.object_id, int(counts[t.object_id]), final) is None:
                     t.confirmed = True
                     changed.append(t.object_id)
             elif recheck:

@@ -102,3 +102,42 @@ def test_association_node_end_to_end_and_bad_input():
     finally:
         executor.shutdown()
         rclpy.shutdown()
+
+
+def test_association_node_settles_when_the_input_pauses():
+    # A chair in view in 6 frames only, never leaving the view: the default confirm_window (10) holds it back
+    # while frames come; settle_after s without a frame publish it, as the end of the input does offline.
+    from frodo_association.synthetic import BoxObject, render_instances
+    from frodo_common.geometry import look_at
+    K = np.array([[300.0, 0, 159.5], [0, 300.0, 119.5], [0, 0, 1]])
+    chair = BoxObject(62, np.array([2.4, 2.5, 0.45]), np.array([0.5, 0.5, 0.9]), 0.2)
+    poses = [look_at(np.array([0.35 * k, 0.0, 1.2]), np.array([0.35 * k + 0.6, 2.5, 0.5])) for k in range(2, 8)]
+    rclpy.init()
+    executor = SingleThreadedExecutor()
+    try:
+        node = AssociationNode(parameter_overrides=[Parameter('diagnostics_period', value=0.2),
+                                                    Parameter('settle_after', value=1.0)])
+        probe = rclpy.create_node('settle_probe')
+        executor.add_node(node)
+        executor.add_node(probe)
+        tracks, diags = [], []
+        probe.create_subscription(MarkerArray, topics.TRACKS, tracks.append, topics.LATCHED_QOS)
+        probe.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, diags.append, 10)
+        det_pub = probe.create_publisher(Image, topics.DETECTIONS, topics.FRAME_QOS)
+        pose_pub = probe.create_publisher(PoseStamped, topics.POSE, topics.FRAME_QOS)
+        info_pub = probe.create_publisher(CameraInfo, topics.CAMERA_INFO, topics.FRAME_QOS)
+        spin(executor, lambda: det_pub.get_subscription_count() > 0 and info_pub.get_subscription_count() > 0, 10.0)
+        info_pub.publish(conv.make_camera_info(K, 320, 240, 1, 'cam'))
+        spin(executor, lambda: False, 0.3)
+        for k, T in enumerate(poses):
+            stamp = (k + 1) * 100_000_000
+            pose_pub.publish(conv.make_pose_stamped(T, stamp, 'world'))
+            det_pub.publish(conv.numpy_to_image(render_instances([chair], K, T, (320, 240))[0], '16UC1', stamp, 'cam'))
+        assert spin(executor, lambda: latest_status(diags, 'association_node').get('frames_published') == '6', 10.0)
+        assert all(m.action != Marker.ADD for msg in tracks for m in msg.markers)     # nothing published yet
+        assert spin(executor, lambda: latest_status(diags, 'association_node').get('settled') == '1', 10.0)
+        assert spin(executor, lambda: any(m.action == Marker.ADD and m.ns == 'chair' for m in tracks[-1].markers)
+                    if tracks else False, 5.0)
+    finally:
+        executor.shutdown()
+        rclpy.shutdown()

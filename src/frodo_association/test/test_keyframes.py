@@ -1,9 +1,9 @@
 """Keyframe front end (issue 9): surface depth from depth images and landmarks, truncation-aware rays, depth-fixed
-segments, and confirmation that does not count consecutive frames (an object seen in 3 of 35 keyframes is
-published, a spurious detection in one keyframe is not)."""
+segments, and confirmation from geometry with the defaults (an object seen in 3 of 35 keyframes is published, a
+spurious detection in one keyframe is not)."""
 import numpy as np
 
-from frodo_association.config import KEYFRAME_SETTINGS, AssociationConfig
+from frodo_association.config import AssociationConfig
 from frodo_association.evidence import contact_edges, landmark_depths, mask_depths, surface_depths
 from frodo_association.segments import complete_truncated_boxes, point_segment_distance
 from frodo_association.synthetic import BoxObject, render_instances
@@ -118,12 +118,13 @@ def test_object_in_3_of_35_keyframes_is_published_and_a_one_keyframe_spurious_de
             a.refine_boxes()
         return a
 
-    a = run(AssociationConfig(**KEYFRAME_SETTINGS))
+    a = run(AssociationConfig())
     tracks = a.confirmed_tracks()
     centres = np.array([t.center for t in tracks])
     assert len(tracks) == 3
     for o in objs:       # within lambda (no depth here: near-parallel rays fix the centre loosely)
         assert np.min(np.linalg.norm(centres - o.center, axis=1)) < 0.4
     assert len(a.members(next(t.object_id for t in tracks if np.linalg.norm(t.center - objs[1].center) < 0.4))) == 3
-    # Counting consecutive frames in view (confirm_window only, the default for video) publishes none of them.
-    assert run(AssociationConfig()).confirmed_tracks() == []
+    # Object 1 has consistent detections in 3 frames: one frame more is asked for in vain.
+    strict = run(AssociationConfig(min_track_views=4)).confirmed_tracks()
+    assert len(strict) == 2 and all(np.linalg.norm(t.center - objs[1].center) > 1.0 for t in strict)

@@ -1,7 +1,7 @@
 """`frodo reconstruct`: the whole method on a bag, offline and deterministic, without ROS processes.
 
     frodo reconstruct bags/demo_walk.mcap --out out/offline
-    frodo reconstruct BAG --out DIR --params keyframes --params my.yaml
+    frodo reconstruct BAG --out DIR --params my.yaml
 
 Writes what `frodo run --out DIR --viewer rrd` writes (`objects.json`, `meshes/<id>_<class>.ply`, the Rerun
 recording `frodo.rrd`) from the same layers the nodes use (`frodo_bringup.pipeline`), as fast as the machine

@@ -2,7 +2,7 @@
 
     frodo report                                   # every set -> docs/results.md, pictures in docs/results/
     frodo report --sets demo,heldout-walks --limit 1
-    frodo report --page /tmp/results.md --work /tmp/report --params keyframes
+    frodo report --page /tmp/results.md --work /tmp/report --params my.yaml
 
 Run it from a checkout (the demo bags are read from bags/, the public real bags from data/real/build/). See
 `frodo_bringup.report` for the sets and how results are stored and reused.

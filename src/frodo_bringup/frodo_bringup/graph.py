@@ -192,7 +192,7 @@ def share_file(relative: str) -> Path:
 
 
 def resolve_params_file(name: str | os.PathLike) -> Path:
-    """A parameter file path, or the name of a shipped preset (`keyframes` -> `config/keyframes.yaml`)."""
+    """A parameter file path, or the name of a shipped parameter file (`frodo` -> `config/frodo.yaml`)."""
     path = Path(name)
     if path.is_file() or path.suffix or len(path.parts) > 1:
         return path
@@ -203,9 +203,9 @@ def resolve_params_file(name: str | os.PathLike) -> Path:
 
 
 def shipped_presets() -> list[str]:
-    """Names of the shipped parameter presets (`config/*.yaml` besides the defaults in frodo.yaml)."""
+    """Names of the shipped parameter files (`config/*.yaml`; `frodo`: the defaults)."""
     folder = share_file('config/frodo.yaml').parent
-    return sorted(p.stem for p in folder.glob('*.yaml') if p.stem != 'frodo')
+    return sorted(p.stem for p in folder.glob('*.yaml'))
 
 
 def source_config_path() -> Path:

@@ -103,7 +103,7 @@ class Launcher:
         self.params_files = [resolve_params_file(p) for p in params_files]
         for path in self.params_files:
             if not path.is_file():
-                raise GraphError(f'parameter file not found: {path} (a file, or a shipped preset: '
+                raise GraphError(f'parameter file not found: {path} (a file, or a shipped one by name: '
                                  f'{", ".join(shipped_presets())})')
         for node in nodes:   # a params file that is not YAML is refused here, not when a node is spawned
             ros_parameter_arguments(node, self.params_files)

@@ -256,8 +256,7 @@ def reconstruct(bag: str | os.PathLike, config: PipelineConfig | None = None,
         raise PipelineError(f'{reader.path}: no complete frame (image, pose, camera info'
                             f'{", instances" if detector is None else ""} of one stamp)')
     assoc = associator.associator
-    while assoc.refine_boxes(max_fits=100).fitted:     # final boxes of the whole sequence
-        pass
+    assoc.settle()       # the end of the input: final pass, confirmation and boxes of the whole sequence
     tracks = {t.object_id: (category_by_id(t.coco_id).name, t.box) for t in assoc.confirmed_tracks()
               if t.box is not None}
     seconds['association'] = time.perf_counter() - t0

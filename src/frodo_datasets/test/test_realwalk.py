@@ -135,8 +135,8 @@ def test_realwalk_sets():
 
 def test_runner_option(tmp_path, monkeypatch):
     bag, pred = tmp_path / 'a.mcap', tmp_path / 'pred'
-    offline = eval_sets.runner_command('reconstruct', bag, pred, ['keyframes'])
-    assert offline[1:] == ['reconstruct', str(bag), '--out', str(pred), '--quiet', '--params', 'keyframes']
+    offline = eval_sets.runner_command('reconstruct', bag, pred, ['my.yaml'])
+    assert offline[1:] == ['reconstruct', str(bag), '--out', str(pred), '--quiet', '--params', 'my.yaml']
     live = eval_sets.runner_command('run', bag, pred, rate=0.5, timeout=60)
     assert live[1:] == ['run', str(bag), '--out', str(pred), '--rate', '0.5', '--no-progress', '--timeout', '60']
     with pytest.raises(ValueError):
