@@ -59,14 +59,28 @@ def clip_boxes(boxes: np.ndarray, sizes: np.ndarray) -> np.ndarray:
     return np.clip(boxes, -0.5, lim)
 
 
+def _box_intersection(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    ix = np.clip(np.minimum(a[..., 2], b[..., 2]) - np.maximum(a[..., 0], b[..., 0]), 0, None)
+    iy = np.clip(np.minimum(a[..., 3], b[..., 3]) - np.maximum(a[..., 1], b[..., 1]), 0, None)
+    return ix * iy
+
+
+def _box_area(a: np.ndarray) -> np.ndarray:
+    return (a[..., 2] - a[..., 0]) * (a[..., 3] - a[..., 1])
+
+
 def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """IoU of boxes a (..., 4) and b (..., 4), broadcast over the leading axes (vectorised
     `frodo_common.geometry.box_iou_2d`)."""
-    ix = np.clip(np.minimum(a[..., 2], b[..., 2]) - np.maximum(a[..., 0], b[..., 0]), 0, None)
-    iy = np.clip(np.minimum(a[..., 3], b[..., 3]) - np.maximum(a[..., 1], b[..., 1]), 0, None)
-    inter = ix * iy
-    union = (a[..., 2] - a[..., 0]) * (a[..., 3] - a[..., 1]) + (b[..., 2] - b[..., 0]) * (b[..., 3] - b[..., 1]) - inter
+    inter = _box_intersection(a, b)
+    union = _box_area(a) + _box_area(b) - inter
     return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
+
+
+def box_inside_fraction(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Fraction of the area of boxes a (..., 4) inside boxes b (..., 4), broadcast (0 for an empty a)."""
+    area = _box_area(a)
+    return np.where(area > 0, _box_intersection(a, b) / np.maximum(area, 1e-12), 0.0)
 
 
 def footprint_overlap(a: Box3D, b: Box3D) -> float:

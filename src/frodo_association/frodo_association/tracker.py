@@ -33,7 +33,8 @@ detections cut by the border or by a nearer instance count), one of them reliabl
 `min_hit_ratio` of the frames with its centre in view; while its centre is still in view it waits until it has
 been in view for `confirm_window` frames (at the end of the input, `settle`, it does not). A spurious detection
 in one frame never meets this; a piece of furniture seen from one side in 3 keyframes far apart does. A
-published cluster whose hit ratio drops below `drop_hit_ratio` (checked at full passes) is withdrawn. Unpublished clusters' detections carry object id -1.
+published cluster whose hit ratio drops below `drop_hit_ratio` (checked at full passes) is withdrawn.
+Unpublished clusters' detections carry object id -1.
 
 Pixel sizes (min_box_width, min_box_height) are given for a 640x480 image and scaled by
 s = sqrt(W * H / (640 * 480)) for a W x H image (`frodo_detection.core.resolution_scale`); border_margin
@@ -45,7 +46,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from frodo_association.boxes import CLASS_SHAPES, Box3D, box_iou, clip_boxes, fit_box, footprint_overlap, project_boxes
+from frodo_association.boxes import (CLASS_SHAPES, Box3D, box_inside_fraction, box_iou, clip_boxes, fit_box,
+                                     footprint_overlap, project_boxes)
 from frodo_association.config import ASSOCIATION_DTYPE, AssociationConfig
 from frodo_association.pruning import prune_detections
 from frodo_association.segments import (box_segments, clip_segments_to_heights, complete_truncated_boxes,
@@ -527,7 +529,8 @@ class Associator:
     def _explaining_objects(self, rows: np.ndarray) -> np.ndarray:
         """Per detection row, the published object of its class (with a box, not the row's own cluster) whose
         projected 3D box, clipped to the image, has the highest IoU with the detection box if that is at least
-        truncated_explained_iou; else -1. (R,) ids."""
+        truncated_explained_iou, or that holds at least explained_inside of the detection box (a partial view of
+        it); else -1. (R,) ids."""
         out = np.full(len(rows), -1, np.int64)
         boxed = [t for t in self.confirmed_tracks() if t.box is not None]
         if not boxed or len(rows) == 0:
@@ -536,12 +539,8 @@ class Associator:
         proj, valid = project_boxes(self.frames.K[fis], self.frames.T_camera_world[fis], self._box_corners(boxed))
         proj, valid = clip_boxes(proj, self.frames.size[fis])[at], valid[at]
         iou = box_iou(self.rows.box[rows][:, None, :], proj)
-        if self.cfg.explained_inside <= 1.0:
-            det = self.rows.box[rows][:, None, :]
-            inter = np.clip(np.minimum(det[..., 2], proj[..., 2]) - np.maximum(det[..., 0], proj[..., 0]), 0, None) \
-                * np.clip(np.minimum(det[..., 3], proj[..., 3]) - np.maximum(det[..., 1], proj[..., 1]), 0, None)
-            area = np.maximum((det[..., 2] - det[..., 0]) * (det[..., 3] - det[..., 1]), 1e-9)
-            inside = inter / area >= self.cfg.explained_inside
+        if self.cfg.explained_inside <= 1.0:     # a partial view lies inside the object's projection
+            inside = box_inside_fraction(self.rows.box[rows][:, None, :], proj) >= self.cfg.explained_inside
             iou = np.where(inside, np.maximum(iou, self.cfg.truncated_explained_iou), iou)
         ids = np.array([t.object_id for t in boxed])
         classes = np.array([t.coco_id for t in boxed])
