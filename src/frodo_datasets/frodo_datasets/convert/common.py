@@ -145,6 +145,7 @@ class ConvertSummary:
     landmarks: str
     ground_truth: int
     notes: list[str] = field(default_factory=list)
+    T_aligned_dataset: np.ndarray | None = None  # the gravity alignment applied to poses, landmarks, ground truth
 
     def text(self) -> str:
         """Human-readable summary (printed by the CLI)."""
@@ -260,6 +261,15 @@ def scale_intrinsics(K: np.ndarray, from_size: tuple[int, int], to_size: tuple[i
     K2[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
     K2[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
     return K2
+
+
+def undistort_maps(K: np.ndarray, dist, size: tuple[int, int]):
+    """cv2.remap maps taking an image with plumb_bob `dist` to the undistorted pinhole K (same K, same size);
+    None when there is no distortion."""
+    if dist is None or not np.any(np.asarray(dist) != 0):
+        return None
+    K = np.asarray(K, dtype=np.float64)
+    return cv2.initUndistortRectifyMap(K, np.asarray(dist, np.float64), None, K, tuple(size), cv2.CV_32FC1)
 
 
 def resize_color(rgb: np.ndarray, size: tuple[int, int]) -> np.ndarray:

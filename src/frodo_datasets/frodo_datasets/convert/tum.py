@@ -97,11 +97,14 @@ def guess_preset(folder: Path) -> str:
 
 
 def read_tum(folder: str | Path, intrinsics: str | None = None, max_dt: float = 0.02,
-             depth_factor: float = DEPTH_FACTOR, trajectory: str = 'groundtruth.txt') -> Source:
+             depth_factor: float = DEPTH_FACTOR, trajectory: str = 'groundtruth.txt',
+             pair_by_order: bool = False) -> Source:
     """Read a TUM RGB-D sequence folder into a `Source` (see module docstring).
 
     intrinsics: preset name, a YAML file path, or None (guessed from the folder name);
-    trajectory: the pose file inside the folder (or a path), e.g. your SLAM output in TUM format.
+    trajectory: the pose file inside the folder (or a path), e.g. your SLAM output in TUM format;
+    pair_by_order: line i of rgb.txt goes with line i of depth.txt and of the trajectory, whose stamps are used
+    (keyframe extracts whose lists are numbered 0, 1, ... instead of stamped, e.g. a fr3/cabinet keyframe set).
     """
     folder = Path(folder)
     if not folder.is_dir():
@@ -124,6 +127,12 @@ def read_tum(folder: str | Path, intrinsics: str | None = None, max_dt: float = 
         c_stamps = [float(r[0]) for r in rgb]
     except ValueError as err:
         raise ConvertError(f'bad timestamp in rgb.txt/depth.txt of {folder}: {err}') from None
+    if pair_by_order:
+        if len(pose_stamps) != len(rgb) or (depth and len(depth) != len(rgb)):
+            raise ConvertError(f'{folder}: pairing by order needs as many poses ({len(pose_stamps)}) and depth '
+                               f'images ({len(depth)}) as colour images ({len(rgb)})')
+        c_stamps = list(pose_stamps)
+        d_stamps = np.array(c_stamps) if depth else d_stamps
     d_order = np.argsort(d_stamps, kind='stable')
     d_sorted = d_stamps[d_order]
     source = Source('tum', [], K, size or IMAGE_SIZE, dist=dist)

@@ -22,7 +22,7 @@ from frodo_common.bag import BagWriter, qos_yaml
 from frodo_common.conversions import make_camera_info, make_pose_stamped, mesh_to_marker, numpy_to_image, xyz_to_cloud
 from frodo_datasets.convert.common import (ConvertError, ConvertOptions, ConvertSummary, Source, SourceFrame,
                                            backproject, register_depth, resize_color, resize_nearest,
-                                           scale_intrinsics, select_keyframes, valid_pose)
+                                           scale_intrinsics, select_keyframes, undistort_maps, valid_pose)
 from frodo_datasets.convert.gravity import align_floor, align_up, camera_up, fit_floor
 from frodo_datasets.convert.landmarks import DepthLandmarks, FeatureLandmarks
 
@@ -71,10 +71,7 @@ def _depth_points(source: Source, frames: list[SourceFrame], max_depth: float) -
 def _feature_points(source: Source, frames: list[SourceFrame]) -> np.ndarray:
     """World points (dataset frame) triangulated from ORB matches of consecutive frames (no depth)."""
     landmarks = FeatureLandmarks(voxel=0.05)  # coarser than the published map: one vote per 5 cm for the plane fit
-    undistort = None
-    if source.dist is not None and np.any(np.asarray(source.dist) != 0):
-        undistort = cv2.initUndistortRectifyMap(source.K_color, np.asarray(source.dist, np.float64), None,
-                                                source.K_color, source.color_size, cv2.CV_32FC1)
+    undistort = undistort_maps(source.K_color, source.dist, source.color_size)
     for f in frames:
         try:
             rgb = f.color()
@@ -150,10 +147,7 @@ def write_bag(source: Source, output: str | os.PathLike, options: ConvertOptions
                                 options.max_depth) if landmark_mode == 'depth'
                  else FeatureLandmarks(options.landmark_voxel) if landmark_mode == 'features' else None)
     K_src = np.asarray(source.K_color, dtype=np.float64)
-    undistort = None
-    if source.dist is not None and np.any(np.asarray(source.dist) != 0):
-        undistort = cv2.initUndistortRectifyMap(K_src, np.asarray(source.dist, np.float64), None, K_src,
-                                                source.color_size, cv2.CV_32FC1)
+    undistort = undistort_maps(K_src, source.dist, source.color_size)
     # Depth camera in the output camera: the colour camera's undistorted K scaled to the output size.
     K_depth = source.K_depth if source.K_depth is not None else K_src
     T_out_depth = source.T_color_depth
@@ -248,4 +242,4 @@ def write_bag(source: Source, output: str | os.PathLike, options: ConvertOptions
                          if final else f'{landmark_mode}: none found')
     return ConvertSummary(output, source.format, frames_in, written, size, K_out, counts, dict(source.skipped),
                           gravity, landmark_text, len(source.ground_truth) if options.ground_truth else 0,
-                          list(source.notes))
+                          list(source.notes), T_align)
