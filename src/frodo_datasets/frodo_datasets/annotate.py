@@ -25,7 +25,8 @@ step works on pinhole images). Steps:
 
 Annotation JSON: `{"sequence": ..., "intrinsics": "fr1", "pair_by_order": false, "trajectory": "groundtruth.txt",
 "gravity": "none", "objects": [{"id": 1, "class": "dining table", "name": "desk", "box": {"center": [x, y, z],
-"size": [dx, dy, dz], "yaw_deg": a}, "how": "..."}]}` (boxes in the world of the sequence's trajectory).
+"size": [dx, dy, dz], "yaw_deg": a}, "how": "..."}]}` (boxes in the world of the sequence's trajectory; an
+optional `truth_box` per object, the true box when the dataset has one, is what `measure` scores against).
 Limits: a surface seen in no frame is not in the mesh, so its pixels are missed in frames that see it from
 further away; depth holes (black, shiny, far surfaces) are filled only where the mesh has surface; the box
 must separate the object from what touches it (a chair pushed under a desk is cut with it).
@@ -86,6 +87,11 @@ class AnnotatedObject:
     class_name: str
     box: AnnotatedBox
     name: str = ''
+    truth: AnnotatedBox | None = None  # the object's true box when known (scored against); else `box`
+
+    @property
+    def reference(self) -> AnnotatedBox:
+        return self.truth if self.truth is not None else self.box
 
 
 def load_annotation(path: str | Path) -> dict:
@@ -94,7 +100,9 @@ def load_annotation(path: str | Path) -> dict:
     objects = []
     for o in doc['objects']:
         category_by_name(o['class'])  # KeyError naming the known classes
-        objects.append(AnnotatedObject(int(o['id']), o['class'], AnnotatedBox.from_dict(o['box']), o.get('name', '')))
+        truth = AnnotatedBox.from_dict(o['truth_box']) if 'truth_box' in o else None
+        objects.append(AnnotatedObject(int(o['id']), o['class'], AnnotatedBox.from_dict(o['box']), o.get('name', ''),
+                                       truth))
     doc['parsed_objects'] = objects
     return doc
 
@@ -357,10 +365,11 @@ def build_bag(annotation: str | Path, sequence: str | Path, output: str | Path, 
         'scene': {'objects': []},
     }
     for o, m in zip(objects, meshes):
-        Tb = T @ o.box.T_world_box()
+        Tb = T @ o.reference.T_world_box()
         side['scene']['objects'].append({
             'id': o.object_id, 'class': o.class_name, 'coco_id': category_by_name(o.class_name).coco_id,
-            'name': o.name, 'T_world_object': Tb.tolist(), 'extents': o.box.size.tolist(),
+            'name': o.name, 'T_world_object': Tb.tolist(), 'extents': o.reference.size.tolist(),
+            'cut_box': {'center': (T[:3, :3] @ o.box.center + T[:3, 3]).tolist(), 'size': o.box.size.tolist()},
             'box_center': Tb[:3, 3].tolist(), 'box_yaw': float(np.arctan2(Tb[1, 0], Tb[0, 0])),
             'mesh_extents': np.asarray(m.extents).tolist(),
             'masked_frames': masked_frames[o.object_id], 'mask_pixels': pixels[o.object_id]})
@@ -410,8 +419,7 @@ def measure_table(results: list[dict]) -> str:
     for r in results:
         found = ', '.join(f'{n} {c}' for c, n in r['found_by_class'].items()) or '0'
         ev = r['eval']
-        f1 = ev.get('f1', ev.get('F1@5cm'))
-        cd = ev.get('cd', ev.get('CD'))
+        f1, cd = ev.get('f1'), ev.get('cd_cm')
         for o in r['objects']:
             err = f'{o["centre_error_cm"]:.1f}' if o['centre_error_cm'] is not None else 'not found'
             size = ('x'.join(f'{v:.2f}' for v in o['size_pred']) if o['size_pred'] else '-') + ' / ' + \
