@@ -89,7 +89,9 @@ def _realwalk(work: Path) -> list[Path]:
 
 
 def _public_real(_: Path) -> list[Path]:
-    return sorted(PUBLIC_REAL_DIR.glob('*.mcap'))
+    # the bags of scripts/build_real_bags.sh (aws_<scene>_fr1xyz_<views>.mcap); the TUM real-frame bags of
+    # scripts/build_tum_bags.sh share the folder and are measured by `frodo_datasets.annotate measure`
+    return sorted(PUBLIC_REAL_DIR.glob('aws_*.mcap'))
 
 
 REPORT_SETS: dict[str, ReportSet] = {s.name: s for s in (
