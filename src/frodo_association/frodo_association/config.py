@@ -148,7 +148,8 @@ CONFIG_DOC: dict[str, str] = {
                            'log-height residual against the typical height of the class (CLASS_SHAPES) with this '
                            'weight, horizontal sizes against the class\'s typical sqrt(long x short) with '
                            'size_prior_weight. Seen from one side, with the bottom hidden, the depth of a box is '
-                           'fixed by its size alone (the isotropic prior put chairs behind tables 0.2-1.8 m too far).',
+                           'fixed by its size alone, and the isotropic prior (0.67 m a side for a chair) puts it too '
+                           'far.',
     'box_overlap_merge': 'At full passes, two published objects of one class whose 3D box footprints overlap by at '
                          'least this fraction of the smaller footprint are merged (the older id survives; > 1: off).',
     'confirm_distance': 'Publishing: a detection is consistent with its cluster when its segment passes within this '

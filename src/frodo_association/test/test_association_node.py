@@ -3,6 +3,9 @@
 /frodo/tracks boxes out; bad input (wrong encoding, NaN pose, missing pose) is reported on /diagnostics and
 survived."""
 
+from contextlib import contextmanager
+from types import SimpleNamespace
+
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
@@ -20,24 +23,38 @@ from frodo_common.testing import latest_status
 from frodo_common.testing import spin_until as spin
 
 
-def test_association_node_end_to_end_and_bad_input():
-    scene = make_scene(2, seed=5, n_frames=24)
+@contextmanager
+def association_graph(**params):
+    """The association node (diagnostics at 5 Hz, `params` overridden) and a probe node in one executor: the
+    probe's publishers of detections, poses and camera info, and what it receives (associations by stamp,
+    track messages, diagnostics)."""
     rclpy.init()
     executor = SingleThreadedExecutor()
     try:
-        node = AssociationNode(parameter_overrides=[Parameter('diagnostics_period', value=0.2),
-                                                    Parameter('full_pass_every', value=8)])
+        node = AssociationNode(parameter_overrides=[Parameter(k, value=v) for k, v in
+                                                    {'diagnostics_period': 0.2, **params}.items()])
         probe = rclpy.create_node('association_probe')
         executor.add_node(node)
         executor.add_node(probe)
-        assoc, tracks, diags = {}, [], []
+        g = SimpleNamespace(executor=executor, assoc={}, tracks=[], diags=[])
         probe.create_subscription(PointCloud2, topics.ASSOCIATIONS,
-                                  lambda m: assoc.__setitem__(conv.stamp_to_ns(m.header.stamp), m), topics.FRAME_QOS)
-        probe.create_subscription(MarkerArray, topics.TRACKS, tracks.append, topics.LATCHED_QOS)
-        probe.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, diags.append, 10)
-        det_pub = probe.create_publisher(Image, topics.DETECTIONS, topics.FRAME_QOS)
-        pose_pub = probe.create_publisher(PoseStamped, topics.POSE, topics.FRAME_QOS)
-        info_pub = probe.create_publisher(CameraInfo, topics.CAMERA_INFO, topics.FRAME_QOS)
+                                  lambda m: g.assoc.__setitem__(conv.stamp_to_ns(m.header.stamp), m), topics.FRAME_QOS)
+        probe.create_subscription(MarkerArray, topics.TRACKS, g.tracks.append, topics.LATCHED_QOS)
+        probe.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, g.diags.append, 10)
+        g.det_pub = probe.create_publisher(Image, topics.DETECTIONS, topics.FRAME_QOS)
+        g.pose_pub = probe.create_publisher(PoseStamped, topics.POSE, topics.FRAME_QOS)
+        g.info_pub = probe.create_publisher(CameraInfo, topics.CAMERA_INFO, topics.FRAME_QOS)
+        yield g
+    finally:
+        executor.shutdown()
+        rclpy.shutdown()
+
+
+def test_association_node_end_to_end_and_bad_input():
+    scene = make_scene(2, seed=5, n_frames=24)
+    with association_graph(full_pass_every=8) as g:
+        executor, assoc, tracks, diags = g.executor, g.assoc, g.tracks, g.diags
+        det_pub, pose_pub, info_pub = g.det_pub, g.pose_pub, g.info_pub
 
         def spin_until(cond, timeout=10.0):
             return spin(executor, cond, timeout)
@@ -99,9 +116,6 @@ def test_association_node_end_to_end_and_bad_input():
             ns = 'chair' if obj.coco_id == 62 else 'dining table'
             centre, size, _ = conv.marker_to_box(cubes[(ns, oid)])
             assert np.linalg.norm(centre - obj.center) < 0.1
-    finally:
-        executor.shutdown()
-        rclpy.shutdown()
 
 
 def test_association_node_settles_when_the_input_pauses():
@@ -112,23 +126,10 @@ def test_association_node_settles_when_the_input_pauses():
     K = np.array([[300.0, 0, 159.5], [0, 300.0, 119.5], [0, 0, 1]])
     chair = BoxObject(62, np.array([2.4, 2.5, 0.45]), np.array([0.5, 0.5, 0.9]), 0.2)
     poses = [look_at(np.array([0.35 * k, 0.0, 1.2]), np.array([0.35 * k + 0.6, 2.5, 0.5])) for k in range(2, 8)]
-    rclpy.init()
-    executor = SingleThreadedExecutor()
-    try:
-        node = AssociationNode(parameter_overrides=[Parameter('diagnostics_period', value=0.2),
-                                                    Parameter('settle_after', value=1.0)])
-        probe = rclpy.create_node('settle_probe')
-        executor.add_node(node)
-        executor.add_node(probe)
-        tracks, diags = [], []
-        probe.create_subscription(MarkerArray, topics.TRACKS, tracks.append, topics.LATCHED_QOS)
-        probe.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, diags.append, 10)
-        det_pub = probe.create_publisher(Image, topics.DETECTIONS, topics.FRAME_QOS)
-        pose_pub = probe.create_publisher(PoseStamped, topics.POSE, topics.FRAME_QOS)
-        info_pub = probe.create_publisher(CameraInfo, topics.CAMERA_INFO, topics.FRAME_QOS)
-        spin(executor, lambda: det_pub.get_subscription_count() > 0 and info_pub.get_subscription_count() > 0, 10.0)
-        info_pub.publish(conv.make_camera_info(K, 320, 240, 1, 'cam'))
-        spin(executor, lambda: False, 0.3)
+    with association_graph(settle_after=1.0) as g:
+        executor, tracks, diags, det_pub, pose_pub = g.executor, g.tracks, g.diags, g.det_pub, g.pose_pub
+        spin(executor, lambda: det_pub.get_subscription_count() > 0 and g.info_pub.get_subscription_count() > 0, 10.0)
+        g.info_pub.publish(conv.make_camera_info(K, 320, 240, 1, 'cam'))   # frames before it are held
         for k, T in enumerate(poses):
             stamp = (k + 1) * 100_000_000
             pose_pub.publish(conv.make_pose_stamped(T, stamp, 'world'))
@@ -138,6 +139,3 @@ def test_association_node_settles_when_the_input_pauses():
         assert spin(executor, lambda: latest_status(diags, 'association_node').get('settled') == '1', 10.0)
         assert spin(executor, lambda: any(m.action == Marker.ADD and m.ns == 'chair' for m in tracks[-1].markers)
                     if tracks else False, 5.0)
-    finally:
-        executor.shutdown()
-        rclpy.shutdown()
