@@ -901,10 +901,12 @@ class Associator:
     def _keep_best_views(self, frame_indices: set[int]) -> set[int]:
         """Pruning never starves a published object (own extension): one with a box and detections in the given
         frames but fewer than min_track_views kept ones keeps its min_track_views detections whose boxes best
-        match its projected 3D box clipped to the image (IoU > 0), among those passing the size and overlap tests.
-        The occlusion test fails every view of an object cut by the border in all of them (a table never seen
-        whole) and every view of one whose box is off (a stool under a chair-sized box prior); without kept views
-        the shape stage never encodes it and it is never reconstructed. Returns the frames whose flags changed."""
+        match its projected 3D box clipped to the image, among those passing the size and overlap tests; where
+        fewer than that overlap the box at all (a box placed far off along the view), the largest passing ones
+        fill up. The occlusion test fails every view of an object cut by the border in all of them (a table never
+        seen whole) and every view of one whose box is off (a stool under a chair-sized box prior); without kept
+        views the shape stage never encodes it and it is never reconstructed. Returns the frames whose flags
+        changed."""
         cfg = self.cfg
         if not cfg.prune or not frame_indices:
             return set()
@@ -925,13 +927,17 @@ class Associator:
             proj, valid = project_boxes(self.frames.K[fis], self.frames.T_camera_world[fis], corners)
             sizes = self.frames.size[fis]
             own = slot[t.object_id]
-            # Size and overlap tests as in pruning; the occlusion test is replaced by the ranking below.
-            passing = prune_detections(self.rows.box[rows], np.full(len(rows), own), proj, valid, sizes,
+            # Size and overlap tests as in pruning; the occlusion test is replaced by the ranking below, so the own
+            # box need not project validly (a camera inside a misplaced table's box).
+            own_valid = valid.copy()
+            own_valid[:, own] = True
+            passing = prune_detections(self.rows.box[rows], np.full(len(rows), own), proj, own_valid, sizes,
                                        replace(cfg, occlusion_iou=-1.0))
-            score = np.where(passing & valid[:, own],
-                             box_iou(self.rows.box[rows], clip_boxes(proj[:, own][:, None], sizes)[:, 0]), 0.0)
-            order = np.argsort(-score, kind='stable')[:cfg.min_track_views]
-            best = rows[order][(score[order] > 0) & ~self.rows.kept[rows[order]]]
+            iou = np.where(valid[:, own],
+                           box_iou(self.rows.box[rows], clip_boxes(proj[:, own][:, None], sizes)[:, 0]), 0.0)
+            area = np.prod(np.diff(self.rows.box[rows].reshape(-1, 2, 2), axis=1)[:, 0], axis=1)
+            order = np.lexsort((-area, -iou, ~passing))[:cfg.min_track_views]
+            best = rows[order][passing[order] & ~self.rows.kept[rows[order]]]
             self.rows.kept[best] = True
             changed |= set(self.rows.frame[best].tolist())
         return changed

@@ -84,3 +84,25 @@ def test_a_partial_view_inside_another_objects_box_is_merged_into_it():
     apart = run_scene(scene, AssociationConfig(explained_inside=2.0), FilterConfig())
     assert (merged.recovered, merged.duplicates, merged.false_tracks) == (5, 0, 0)
     assert apart.duplicates == 1
+
+
+def test_a_published_object_whose_box_no_detection_overlaps_keeps_its_largest_views():
+    # realwalk-tune 8404: a table's box placed 0.8 m off, the camera inside it, kept none of its detections and
+    # was never reconstructed.
+    chair = BoxObject(CHAIR, np.array([0.0, 2.5, 0.45]), np.array([0.5, 0.5, 0.9]), 0.0)
+    poses = [look_at(np.array([x, 0.0, 1.2]), np.array([0.0, 2.5, 0.45])) for x in np.linspace(-0.8, 0.8, 6)]
+    a = _run([chair], poses, AssociationConfig())
+    a.settle()
+    (track,) = a.confirmed_tracks()
+    rows = a.members(track.object_id)
+    area = np.prod(a.rows.box[rows, 2:] - a.rows.box[rows, :2], axis=1)
+    every = set(range(len(a.frames)))
+    for center in ([0.0, 0.1, 1.0], [3.0, 2.5, 0.45]):       # around the first camera; far to one side
+        track.box = type(track.box)(np.array(center), track.box.size, track.box.yaw)
+        a.rows.kept[rows] = False
+        a._prune_frames(sorted(every))
+        assert not a.rows.kept[rows].any()
+        assert a._keep_best_views(every)
+        kept = a.rows.kept[rows]
+        assert kept.sum() == AssociationConfig().min_track_views
+        assert area[kept].min() >= area[~kept].max()
