@@ -305,7 +305,8 @@ class Associator:
     def settle(self) -> AssociationUpdate:
         """End of the input (or a pause): a full pass, the merges, and confirmation as if every cluster had left
         the view (an object still in view in the last frames is published on its consistent detections), then
-        pruning of every frame with the final boxes. Returns what changed (republish stamps, removed ids)."""
+        pruning of every frame with the final boxes (the merges again after each round of box fits). Returns what
+        changed (republish stamps, removed ids)."""
         dirty, removed = self.full_pass()
         gone, merge_frames = self.merge_explained()
         removed.update(gone)
@@ -319,6 +320,11 @@ class Associator:
         republish: set[int] = set()
         while (refined := self.refine_boxes(max_fits=100)).fitted:
             republish.update(refined.republish)
+            # Objects confirmed just now get their first boxes here: a duplicate of a published object (the
+            # far end of a table seen in the last frames) shows only now, by its box's footprint.
+            gone, merge_frames = self.merge_explained()
+            removed.update(gone)
+            dirty |= merge_frames
         every = list(range(len(self.frames)))
         self._prune_frames(every)
         self._keep_best_views(set(every))
