@@ -103,14 +103,9 @@ def _stats_ms(values_ms) -> dict[str, float]:
 def machine_info(device: str) -> dict[str, Any]:
     """What the figures were measured on."""
     import torch
-    from frodo_common.host import cpu_model
+    from frodo_common.host import cpu_model, git_commit
     cpu = cpu_model()
-    try:
-        # The checkout it runs in (the working directory's, where the bag and bench/ come from); '' outside one.
-        commit = subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], capture_output=True,
-                                text=True, timeout=5).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        commit = ''
+    commit = git_commit()     # the checkout it runs in (where the bag and bench/ come from); '' outside one
     return {'host': platform.node(), 'cpu': cpu, 'logical_cpus': os.cpu_count(),
             'load_average_1min': round(os.getloadavg()[0], 2), 'torch_threads': torch.get_num_threads(),
             'device': device, 'gpu': torch.cuda.get_device_name(0) if device.startswith('cuda') else None,

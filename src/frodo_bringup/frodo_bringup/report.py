@@ -39,7 +39,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from frodo_common.host import cpu_model, memory_gb
+from frodo_common.host import cpu_model, git_commit, memory_gb
 
 DEFAULT_PAGE = Path('docs/results.md')
 DEFAULT_WORK = Path('out/report')
@@ -124,9 +124,10 @@ REPORT_SETS: dict[str, ReportSet] = {s.name: s for s in (
 def commit_key(repo: Path = Path('.')) -> str:
     """Short commit of the checkout; with uncommitted changes to tracked files `<commit>-dirty-<hash of the
     diff>`, so the same edits reuse their results and other edits do not; 'unknown' outside git."""
+    head = git_commit(repo)
+    if not head:
+        return 'unknown'
     try:
-        head = subprocess.run(['git', 'rev-parse', '--short=10', 'HEAD'], cwd=repo, capture_output=True,
-                              text=True, check=True).stdout.strip()
         diff = subprocess.run(['git', 'diff', 'HEAD'], cwd=repo, capture_output=True, check=True).stdout
     except (OSError, subprocess.CalledProcessError):
         return 'unknown'

@@ -4,7 +4,17 @@ from __future__ import annotations
 
 import os
 import platform
+import subprocess
 from pathlib import Path
+
+
+def git_commit(cwd: str | os.PathLike | None = None, length: int = 10) -> str:
+    """Short commit of the git checkout at `cwd` (default: the working directory); '' outside one."""
+    try:
+        return subprocess.run(['git', 'rev-parse', f'--short={length}', 'HEAD'], cwd=cwd, capture_output=True,
+                              text=True, check=True, timeout=5).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return ''
 
 
 def cpu_model() -> str:

@@ -47,6 +47,7 @@ import trimesh
 
 from frodo_common.categories import category_by_name
 from frodo_common.geometry import yaw_matrix
+from frodo_common.host import git_commit
 from frodo_datasets.convert.common import (ConvertOptions, GroundTruthObject, Source, SourceFrame, backproject,
                                            select_keyframes, undistort_maps)
 from frodo_datasets.convert.tum import read_tum
@@ -381,14 +382,6 @@ def build_bag(annotation: str | Path, sequence: str | Path, output: str | Path, 
 
 
 # ---------------------------------------------------------------- measure
-def git_commit() -> str:
-    try:
-        return subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], capture_output=True, text=True,
-                              cwd=Path(__file__).parent, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return 'unknown'
-
-
 def measure_row(bag: Path, run_dir: Path) -> dict:
     """Objects found, centre error of the nearest same-class prediction to each annotated box, eval scores."""
     from frodo_datasets.synth import sidecar_path
@@ -412,8 +405,9 @@ def measure_row(bag: Path, run_dir: Path) -> dict:
 
 
 def measure_table(results: list[dict]) -> str:
+    commit = git_commit(Path(__file__).parent) or 'unknown'
     lines = [f'`python -m frodo_datasets.annotate measure` on {platform.node()} ({platform.machine()}, '
-             f'{platform.python_implementation()} {platform.python_version()}), commit {git_commit()}:', '',
+             f'{platform.python_implementation()} {platform.python_version()}), commit {commit}:', '',
              '| bag | frames | size (MB) | objects found | annotated object | centre error (cm) | box size found / annotated (m) | F1@5cm (%) | CD (cm) |',
              '|---|---|---|---|---|---|---|---|---|']
     for r in results:
