@@ -65,7 +65,8 @@ def _box_intersection(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return ix * iy
 
 
-def _box_area(a: np.ndarray) -> np.ndarray:
+def box_area(a: np.ndarray) -> np.ndarray:
+    """Area of boxes (..., 4) = (min u, min v, max u, max v)."""
     return (a[..., 2] - a[..., 0]) * (a[..., 3] - a[..., 1])
 
 
@@ -73,13 +74,13 @@ def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """IoU of boxes a (..., 4) and b (..., 4), broadcast over the leading axes (vectorised
     `frodo_common.geometry.box_iou_2d`)."""
     inter = _box_intersection(a, b)
-    union = _box_area(a) + _box_area(b) - inter
+    union = box_area(a) + box_area(b) - inter
     return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
 
 
 def box_inside_fraction(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Fraction of the area of boxes a (..., 4) inside boxes b (..., 4), broadcast (0 for an empty a)."""
-    area = _box_area(a)
+    area = box_area(a)
     return np.where(area > 0, _box_intersection(a, b) / np.maximum(area, 1e-12), 0.0)
 
 
@@ -106,13 +107,14 @@ def canonical_yaw(size: np.ndarray, yaw: float) -> tuple[np.ndarray, float]:
 
 
 def _box_projection(p: np.ndarray, R: np.ndarray, t: np.ndarray, f: np.ndarray, c: np.ndarray,
-                    floor_height: float | None, with_jacobian: bool = False):
+                    floor_height: float | None, with_jacobian: bool = False, with_near: bool = False):
     """Projected 2D boxes of upright 3D boxes (and their Jacobians w.r.t. the box parameters), S boxes at once.
 
     p: (S, P) = (cx, cy, [cz], log dx, log dy, log dz, yaw) per box (cz omitted when boxes stand on
     floor_height); R: (V, 3, 3), t: (V, 3) camera-from-world; f, c: (V, 2) focal lengths and principal points.
     Returns boxes (S, V, 4) = (min u, min v, max u, max v) over the 8 corners, or (boxes, jacobian (S, V, 4, P))
-    with `with_jacobian` (each edge follows its extreme corner).
+    with `with_jacobian` (each edge follows its extreme corner). With `with_near` also the optical depth of each
+    box's nearest corner per view (S, V) (and its Jacobian (S, V, P)), appended.
     """
     on_floor = floor_height is not None
     n_s, n_p = p.shape
@@ -134,8 +136,10 @@ def _box_projection(p: np.ndarray, R: np.ndarray, t: np.ndarray, f: np.ndarray, 
     s_idx = np.arange(n_s)[:, None, None]
     v_idx = np.arange(n_v)[None, :, None]
     boxes = uv[s_idx, v_idx, _EDGE_AXIS, corner]                        # (S, V, 4)
+    nearest = pc[:, :, 2].argmin(axis=2)                                # (S, V)
+    near = pc[:, :, 2].min(axis=2)
     if not with_jacobian:
-        return boxes
+        return (boxes, near) if with_near else boxes
     n_c = 2 if on_floor else 3
     dX = np.zeros((n_s, 3, 8, n_p))                                     # d world corner / d p
     dX[:, np.arange(n_c), :, np.arange(n_c)] = 1.0
@@ -148,6 +152,9 @@ def _box_projection(p: np.ndarray, R: np.ndarray, t: np.ndarray, f: np.ndarray, 
     # Derivatives of the 4 extreme corners only (each edge follows its corner: u = f x / z + c).
     jac = (dpc[s_idx, v_idx, _EDGE_AXIS, corner] - xy[s_idx, v_idx, _EDGE_AXIS, corner][..., None]
            * dpc[s_idx, v_idx, 2, corner]) * (f[:, _EDGE_AXIS] / z[s_idx, v_idx, corner])[..., None]
+    if with_near:
+        near_jac = dpc[s_idx[..., 0], v_idx[..., 0], 2, nearest]         # (S, V, P)
+        return boxes, jac, near, near_jac
     return boxes, jac                                                   # (S, V, 4), (S, V, 4, P)
 
 
@@ -155,7 +162,8 @@ def fit_box(K: np.ndarray, T_camera_world: np.ndarray, boxes: np.ndarray, edge_v
             size_range: tuple[float, float], init_center: np.ndarray, floor_height: float | None = None,
             size_prior_weight: float = 0.05, anchor_weight: float = 1.0, init: Box3D | None = None,
             shape: tuple[float, float, float] | None = None, height_prior_weight: float = 0.0,
-            truncation_hinge: bool = True) -> Box3D:
+            truncation_hinge: bool = True, surface_depth: np.ndarray | None = None, surface_weight: float = 0.0,
+            surface_slack: float = 0.1) -> Box3D:
     """Upright 3D box whose projection matches 2D detection boxes over several views.
 
     K: (V, 3, 3); T_camera_world: (V, 4, 4); boxes: (V, 4) detection boxes; edge_valid: (V, 4) bool, False
@@ -168,7 +176,12 @@ def fit_box(K: np.ndarray, T_camera_world: np.ndarray, boxes: np.ndarray, edge_v
     size_prior_weight * log(size / prior) per dimension with prior = sqrt(S_min * S_max), and
     anchor_weight * (centre - init_center) (metres) per free centre coordinate. With a class `shape` (long, short,
     height) and height_prior_weight > 0 the prior is (sqrt(long * short), sqrt(long * short), height) instead, the
-    height residual weighted by height_prior_weight.
+    height residual weighted by height_prior_weight. With surface_depth (V,) (the optical depth of each detection's
+    visible surface, NaN: unknown) and surface_weight > 0, per known depth surface_weight * max(0, the box's nearest
+    corner depth - surface_slack - d_s) (metres): the object reaches at least as near as its visible surface. One
+    sided, because a surface depth from landmarks inside a mask may lie on the background behind the object; without
+    it an object whose lower part is hidden (its bottom edge above the floor contact) is fitted far behind its
+    surface along the view.
     Analytic Jacobian (the extreme corner of each edge). Starts: yaw 0 and pi/4 (a box is symmetric under quarter
     turns) at init_center with the prior size; with `init`, that box and the yaw-0 start.
     """
@@ -194,15 +207,22 @@ def fit_box(K: np.ndarray, T_camera_world: np.ndarray, boxes: np.ndarray, edge_v
     cut = ~edge_valid if truncation_hinge else np.zeros_like(edge_valid)
     outward = np.array([1.0, 1.0, -1.0, -1.0])                          # sign of (proj - box) that is inside
 
+    known = np.zeros(len(boxes), bool) if surface_depth is None or surface_weight <= 0 \
+        else np.isfinite(np.asarray(surface_depth, dtype=np.float64))
+    surface = np.asarray(surface_depth, dtype=np.float64)[known] if known.any() else np.zeros(0)
+
     def residuals_and_jacobian(p):                                     # p: (S, P) -> (S, M), (S, M, P)
-        proj, jac = _box_projection(p, R, t, f, c, floor_height, with_jacobian=True)
+        proj, jac, near, near_jac = _box_projection(p, R, t, f, c, floor_height, with_jacobian=True, with_near=True)
         err = (proj - boxes) / diag[:, None]
         inside = (err * outward > 0).astype(np.float64)
-        r = np.concatenate([err[:, edge_valid], (err * inside)[:, cut],
+        behind = near[:, known] - surface_slack - surface                  # > 0: box farther than its surface
+        active = surface_weight * (behind > 0)
+        r = np.concatenate([err[:, edge_valid], (err * inside)[:, cut], active * behind,
                             weights * (p[:, n_center:n_center + 3] - np.log(prior)),
                             anchor_weight * (p[:, :n_center] - anchor)], axis=1)
         jac = jac / diag[:, None, None]
         return r, np.concatenate([jac[:, edge_valid], (jac * inside[..., None])[:, cut],
+                                  near_jac[:, known] * active[..., None],
                                   np.broadcast_to(prior_jac, (len(p),) + prior_jac.shape)], axis=1)
 
     lo_size, hi_size = np.log(0.05), np.log(size_range[1] * 1.2)

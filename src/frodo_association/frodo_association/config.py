@@ -39,6 +39,7 @@ class AssociationConfig:
     center_anchor_weight: float = 0.1
     box_truncation_hinge: bool = True
     box_contact_edges: bool = True
+    box_surface_weight: float = 1.0
     box_refit_growth: float = 1.5
     box_max_views: int = 24
     max_box_fits_per_frame: int = 1
@@ -116,6 +117,9 @@ CONFIG_DOC: dict[str, str] = {
                             'far; the projected box edge is pulled out when it lies inside (one-sided residual).',
     'box_contact_edges': 'Box fit: detection edges where the mask meets another instance (possibly hidden by it) '
                          'count like edges on the image border.',
+    'box_surface_weight': 'Box fit: weight (per metre) of the one-sided residual that keeps the box\'s nearest corner '
+                          'no farther than surface_slack behind each detection\'s visible-surface depth (depth image or '
+                          'landmarks; 0: surface depths play no part in the box fit).',
     'box_refit_growth': 'An object box is refitted when its detection count grew by this factor since the last fit.',
     'box_max_views': 'Detections used per box fit (evenly spread over the object\'s detections).',
     'max_box_fits_per_frame': 'Box fits per processed frame at most (bounds the per-frame latency).',

@@ -46,8 +46,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from frodo_association.boxes import (CLASS_SHAPES, Box3D, box_inside_fraction, box_iou, clip_boxes, fit_box,
-                                     footprint_overlap, project_boxes)
+from frodo_association.boxes import (CLASS_SHAPES, Box3D, box_area, box_inside_fraction, box_iou, clip_boxes,
+                                     fit_box, footprint_overlap, project_boxes)
 from frodo_association.config import ASSOCIATION_DTYPE, AssociationConfig
 from frodo_association.pruning import prune_detections
 from frodo_association.segments import (box_segments, clip_segments_to_heights, complete_truncated_boxes,
@@ -159,7 +159,7 @@ class Associator:
                            label=((), np.int64, 0), coco=((), np.int64, 0),
                            frame=((), np.int64, 0), assign=((), np.int64, -1), kept=((), bool, False),
                            valid=((), bool, False), reliable=((), bool, False), truncated=((), bool, False),
-                           evidence=((), bool, False),
+                           evidence=((), bool, False), surface=((), np.float64, np.nan),
                            sent_id=((), np.int64, -1), sent_kept=((), bool, False),   # as last published
                            slot=((), np.int64, 0))                                    # position in its frame
         self.frames = _Table(stamp=((), np.int64, 0), K=((3, 3), np.float64, 0.0),
@@ -262,7 +262,8 @@ class Associator:
                                 label=labels, coco=coco,
                                 frame=np.full(len(labels), fi), assign=np.full(len(labels), -1),
                                 kept=np.zeros(len(labels), bool), valid=valid, slot=np.arange(len(labels)),
-                                reliable=valid & big_enough & opens, truncated=valid & big_enough & truncated & ~evidence_opens,
+                                surface=np.where(has_depth, surface, np.nan), reliable=valid & big_enough & opens,
+                                truncated=valid & big_enough & truncated & ~evidence_opens,
                                 evidence=valid & big_enough)
         self.frames.append(stamp=[stamp], K=K[None], T_world_camera=T_world_camera[None],
                            T_camera_world=invert_transform(T_world_camera)[None], size=[(w, h)],
@@ -881,7 +882,8 @@ class Associator:
                             fit_edges, category.size_range, track.center,
                             cfg.floor_height if cfg.objects_on_floor else None, cfg.size_prior_weight,
                             cfg.center_anchor_weight, track.box, class_shape(track.coco_id, category.size_range),
-                            cfg.height_prior_weight, cfg.box_truncation_hinge)
+                            cfg.height_prior_weight, cfg.box_truncation_hinge, self.rows.surface[members],
+                            cfg.box_surface_weight, cfg.surface_slack)
         return track.box
 
     def _prune_frames(self, frame_indices: list[int]) -> None:
@@ -941,8 +943,7 @@ class Associator:
                                        replace(cfg, occlusion_iou=-1.0))
             iou = np.where(valid[:, own],
                            box_iou(self.rows.box[rows], clip_boxes(proj[:, own][:, None], sizes)[:, 0]), 0.0)
-            area = np.prod(np.diff(self.rows.box[rows].reshape(-1, 2, 2), axis=1)[:, 0], axis=1)
-            order = np.lexsort((-area, -iou, ~passing))[:cfg.min_track_views]
+            order = np.lexsort((-box_area(self.rows.box[rows]), -iou, ~passing))[:cfg.min_track_views]
             best = rows[order][passing[order] & ~self.rows.kept[rows[order]]]
             self.rows.kept[best] = True
             changed |= set(self.rows.frame[best].tolist())

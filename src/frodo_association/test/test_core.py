@@ -324,3 +324,26 @@ def test_box_fit_of_an_object_never_seen_whole_reaches_the_border_where_its_dete
         assert inside.max() < 2.0
     else:
         assert inside.max() > 8.0
+
+
+def test_box_fit_of_an_object_with_a_hidden_lower_part_stays_at_its_visible_surface():
+    # A chair whose lower 0.36 m is hidden (behind a nearer table, unflagged) in 5 views from one side: its boxes
+    # show only the upper part, and the fit, matching them with the class height, moves the box down and away
+    # along the view. The detections' visible-surface depths (here 0.3 m behind the true nearest corner, as
+    # landmarks on the back of a chair lie) bound the box's nearest corner and keep it near its place.
+    gt = Box3D(np.array([0.0, 0.0, 0.45]), np.array([0.5, 0.5, 0.9]), 0.2)
+    visible = Box3D(np.array([0.0, 0.0, 0.63]), np.array([0.5, 0.5, 0.54]), 0.2)
+    views = [look_at([x, -2.6 + 0.1 * abs(x), 1.3], [0.0, 0.0, 0.45]) for x in (-0.4, -0.25, -0.1, 0.05, 0.2)]
+    T_cw = np.stack([invert_transform(T) for T in views])
+    boxes = np.stack([_box_of(visible.center, visible.size, visible.yaw, T) for T in views])
+    near = np.array([(gt.corners() @ T[:3, :3].T + T[:3, 3])[:, 2].min() for T in T_cw])
+
+    def centre_error(weight):
+        fit = fit_box(np.repeat(K[None], len(views), 0), T_cw, boxes, np.ones((len(views), 4), bool), (0.35, 1.3),
+                      gt.center + [0.1, 0.2, 0.0], floor_height=0.0, anchor_weight=0.1, shape=(0.5, 0.5, 0.9),
+                      height_prior_weight=0.2, surface_depth=near + 0.3, surface_weight=weight)
+        return np.linalg.norm(fit.center - gt.center)
+
+    without, with_surface = centre_error(0.0), centre_error(1.0)
+    assert without > 0.5
+    assert with_surface < 0.35 and with_surface < 0.5 * without
