@@ -180,10 +180,10 @@ def run_scene(scene: SynthScene, cfg: AssociationConfig, filt: FilterConfig,
 
 def trace_objects(assoc: Associator, scene: SynthScene, gt: np.ndarray, tracks: list, match: dict[int, int],
                   far: float = 0.5) -> list[str]:
-    """One line per ground-truth object: its detections (reliable / truncated / other), the clusters holding
-    them, and its fate: published (box centre error; 'placement' when farther than `far` m), or why not: never
-    detected, never clustered, taken by another object's track, or the first publishing condition its main
-    cluster fails (`Associator.publish_blocker`). gt: (rows,) object index of every detection row (-1: none);
+    """One line per ground-truth object: its detections (reliable / truncated / other; how many with a surface
+    depth), the clusters holding them, and its fate: published (box centre error; 'placement' when farther than
+    `far` m), or why not: never detected, never clustered, taken by another object's track, or the first
+    publishing condition its main cluster fails (`Associator.publish_blocker`). gt: (rows,) object index of every detection row (-1: none);
     tracks / match: the published tracks and {track index: object index} of `run_scene`."""
     from frodo_common.categories import category_by_id
 
@@ -198,7 +198,8 @@ def trace_objects(assoc: Associator, scene: SynthScene, gt: np.ndarray, tracks: 
         held = ', '.join(f'{"none" if c < 0 else c}: {n}' for c, n in zip(*clusters))
         head = (f'object {obj_index} ({name}, {np.linalg.norm(obj.size[:2]):.2f} m across): {len(rows)} detections '
                 f'in {len(np.unique(assoc.rows.frame[rows]))} frames, {int(rel.sum())} reliable, '
-                f'{int(trunc.sum())} truncated, {int((~rel & ~trunc).sum())} other; clusters {{{held or "-"}}}: ')
+                f'{int(trunc.sum())} truncated, {int((~rel & ~trunc).sum())} other, '
+                f'{int(np.isfinite(assoc.rows.surface[rows]).sum())} with surface depth; clusters {{{held or "-"}}}: ')
         if obj_index in by_object:
             t = tracks[by_object[obj_index]]
             err = np.linalg.norm(t.box.center - obj.center) if t.box is not None else float('nan')
