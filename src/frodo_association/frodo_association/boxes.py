@@ -163,7 +163,7 @@ def fit_box(K: np.ndarray, T_camera_world: np.ndarray, boxes: np.ndarray, edge_v
             size_prior_weight: float = 0.05, anchor_weight: float = 1.0, init: Box3D | None = None,
             shape: tuple[float, float, float] | None = None, height_prior_weight: float = 0.0,
             truncation_hinge: bool = True, surface_depth: np.ndarray | None = None, surface_weight: float = 0.0,
-            surface_slack: float = 0.1) -> Box3D:
+            surface_slack: float = 0.1, bottom_below_weight: float = 1.0) -> Box3D:
     """Upright 3D box whose projection matches 2D detection boxes over several views.
 
     K: (V, 3, 3); T_camera_world: (V, 4, 4); boxes: (V, 4) detection boxes; edge_valid: (V, 4) bool, False
@@ -181,7 +181,9 @@ def fit_box(K: np.ndarray, T_camera_world: np.ndarray, boxes: np.ndarray, edge_v
     corner depth - surface_slack - d_s) (metres): the object reaches at least as near as its visible surface. One
     sided, because a surface depth from landmarks inside a mask may lie on the background behind the object; without
     it an object whose lower part is hidden (its bottom edge above the floor contact) is fitted far behind its
-    surface along the view.
+    surface along the view. With a floor, a detection's bottom-edge residual is scaled by bottom_below_weight where
+    the box's projection reaches below it (a detection may end above the floor contact unflagged: legs its mask
+    misses, an unlabelled occluder; it may not end below it).
     Analytic Jacobian (the extreme corner of each edge). Starts: yaw 0 and pi/4 (a box is symmetric under quarter
     turns) at init_center with the prior size; with `init`, that box and the yaw-0 start.
     """
@@ -206,6 +208,7 @@ def fit_box(K: np.ndarray, T_camera_world: np.ndarray, boxes: np.ndarray, edge_v
     # inside it (one-sided: min edges <= the detection's, max edges >= it).
     cut = ~edge_valid if truncation_hinge else np.zeros_like(edge_valid)
     outward = np.array([1.0, 1.0, -1.0, -1.0])                          # sign of (proj - box) that is inside
+    bottom = np.array([0.0, 0.0, 0.0, 1.0 if on_floor else 0.0])
 
     known = np.zeros(len(boxes), bool) if surface_depth is None or surface_weight <= 0 \
         else np.isfinite(np.asarray(surface_depth, dtype=np.float64))
@@ -215,13 +218,14 @@ def fit_box(K: np.ndarray, T_camera_world: np.ndarray, boxes: np.ndarray, edge_v
         proj, jac, near, near_jac = _box_projection(p, R, t, f, c, floor_height, with_jacobian=True, with_near=True)
         err = (proj - boxes) / diag[:, None]
         inside = (err * outward > 0).astype(np.float64)
+        scale = 1.0 + bottom * (1.0 - inside) * (bottom_below_weight - 1.0)
         behind = near[:, known] - surface_slack - surface                  # > 0: box farther than its surface
         active = surface_weight * (behind > 0)
-        r = np.concatenate([err[:, edge_valid], (err * inside)[:, cut], active * behind,
+        r = np.concatenate([(err * scale)[:, edge_valid], (err * inside)[:, cut], active * behind,
                             weights * (p[:, n_center:n_center + 3] - np.log(prior)),
                             anchor_weight * (p[:, :n_center] - anchor)], axis=1)
         jac = jac / diag[:, None, None]
-        return r, np.concatenate([jac[:, edge_valid], (jac * inside[..., None])[:, cut],
+        return r, np.concatenate([(jac * scale[..., None])[:, edge_valid], (jac * inside[..., None])[:, cut],
                                   near_jac[:, known] * active[..., None],
                                   np.broadcast_to(prior_jac, (len(p),) + prior_jac.shape)], axis=1)
 

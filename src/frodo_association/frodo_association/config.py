@@ -40,6 +40,7 @@ class AssociationConfig:
     box_truncation_hinge: bool = True
     box_contact_edges: bool = True
     box_surface_weight: float = 1.0
+    box_bottom_below_weight: float = 0.3
     box_refit_growth: float = 1.5
     box_max_views: int = 24
     max_box_fits_per_frame: int = 1
@@ -120,6 +121,11 @@ CONFIG_DOC: dict[str, str] = {
     'box_surface_weight': 'Box fit: weight (per metre) of the one-sided residual that keeps the box\'s nearest corner '
                           'no farther than surface_slack behind each detection\'s visible-surface depth (depth image or '
                           'landmarks; 0: surface depths play no part in the box fit).',
+    'box_bottom_below_weight': 'Box fit (objects on the floor): weight of a detection\'s bottom-edge residual where '
+                               'the box reaches lower in the image than the detection (1: two-sided; above it: '
+                               'full weight). A detection often ends above the floor contact (legs the mask '
+                               'misses, something unlabelled in front), and matching it exactly stands the box on '
+                               'the floor farther away.',
     'box_refit_growth': 'An object box is refitted when its detection count grew by this factor since the last fit.',
     'box_max_views': 'Detections used per box fit (evenly spread over the object\'s detections).',
     'max_box_fits_per_frame': 'Box fits per processed frame at most (bounds the per-frame latency).',

@@ -883,7 +883,7 @@ class Associator:
                             cfg.floor_height if cfg.objects_on_floor else None, cfg.size_prior_weight,
                             cfg.center_anchor_weight, track.box, class_shape(track.coco_id, category.size_range),
                             cfg.height_prior_weight, cfg.box_truncation_hinge, self.rows.surface[members],
-                            cfg.box_surface_weight, cfg.surface_slack)
+                            cfg.box_surface_weight, cfg.surface_slack, cfg.box_bottom_below_weight)
         return track.box
 
     def _prune_frames(self, frame_indices: list[int]) -> None:

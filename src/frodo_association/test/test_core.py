@@ -347,3 +347,28 @@ def test_box_fit_of_an_object_with_a_hidden_lower_part_stays_at_its_visible_surf
     without, with_surface = centre_error(0.0), centre_error(1.0)
     assert without > 0.5
     assert with_surface < 0.35 and with_surface < 0.5 * without
+
+
+@pytest.mark.parametrize('hidden', [0.0, 0.36])
+def test_box_fit_on_the_floor_weighs_a_bottom_edge_above_the_box_less(hidden):
+    # The same chair seen from one side, its lowest `hidden` metres not in its detections (legs its mask misses)
+    # and no edge flagged, no surface depth. Matching the bottom edges exactly stands the box on the floor where
+    # they end, behind the chair; weighing a box that reaches below them less keeps it near, and costs nothing
+    # when the bottom is seen.
+    gt = Box3D(np.array([0.0, 0.0, 0.45]), np.array([0.5, 0.5, 0.9]), 0.2)
+    visible = Box3D(np.array([0.0, 0.0, 0.45 + hidden / 2]), np.array([0.5, 0.5, 0.9 - hidden]), 0.2)
+    views = [look_at([x, -2.6 + 0.1 * abs(x), 1.3], [0.0, 0.0, 0.45]) for x in (-0.4, -0.25, -0.1, 0.05, 0.2)]
+    T_cw = np.stack([invert_transform(T) for T in views])
+    boxes = np.stack([_box_of(visible.center, visible.size, visible.yaw, T) for T in views])
+
+    def centre_error(weight):
+        fit = fit_box(np.repeat(K[None], len(views), 0), T_cw, boxes, np.ones((len(views), 4), bool), (0.35, 1.3),
+                      gt.center + [0.1, 0.2, 0.0], floor_height=0.0, anchor_weight=0.1, shape=(0.5, 0.5, 0.9),
+                      height_prior_weight=0.2, bottom_below_weight=weight)
+        return np.linalg.norm(fit.center - gt.center)
+
+    two_sided, weighted = centre_error(1.0), centre_error(0.3)
+    if hidden == 0.0:
+        assert two_sided < 0.03 and weighted < 0.03
+    else:
+        assert two_sided > 0.6 and weighted < 0.7 * two_sided
