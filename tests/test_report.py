@@ -29,6 +29,7 @@ def test_demo_set_is_reconstructed_scored_rendered_and_then_reused(tmp_path, in_
     cells = [c.strip() for c in row.strip('|').split('|')]
     assert cells[1:4] == ['4', '4', '0']                       # objects, found, false positives
     assert float(cells[5]) < 5.0                                 # mean CD (cm) of the four objects
+    assert 50.0 < float(cells[7]) <= 100.0                       # mean COMP@5cm (%)
     assert (page.parent / 'results' / 'demo.png').stat().st_size > 10_000
     assert '![demo: demo_walk](results/demo.png)' in text
     assert any('reconstructing' in line for line in lines)

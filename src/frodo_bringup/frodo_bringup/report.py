@@ -216,20 +216,21 @@ def set_section(report_set: ReportSet, results: list[tuple[str, dict]], picture:
     lines = [f'## {report_set.title} (`{report_set.name}`)', '', report_set.description, '']
     if not results:
         return lines + [f'No bags: {report_set.missing or "the set gave no bags"}.', '']
-    head = ['bag', 'objects', 'found', 'FP', 'median centre cm', 'mean CD cm', 'mean F1@5cm', 'final stages',
-            'seconds', 'load']
+    head = ['bag', 'objects', 'found', 'FP', 'median centre cm', 'mean CD cm', 'mean F1@5cm', 'mean COMP@5cm',
+            'final stages', 'seconds', 'load']
     lines += ['| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
     scored = []
     for scene, r in results:
         if 'error' in r:
-            lines.append(f'| {scene} | - | - | - | - | - | - | failed: {r["error"][:80]} | - | - |')
+            lines.append(f'| {scene} | - | - | - | - | - | - | - | failed: {r["error"][:80]} | - | - |')
             continue
         scored.append(r)
         s = pool([r])
         run = r['run']
         lines.append(f'| {scene} | {s["objects"]} | {s["found"]} | {r["overall"]["false_positives"]} | '
                      f'{_num(s["median_centre_cm"], ".1f")} | {_num(s["mean_cd_cm"], ".2f")} | '
-                     f'{_num(s["mean_f1"], ".1f")} | {_stages(run["stages"])} | {run["seconds"]:.0f} | '
+                     f'{_num(s["mean_f1"], ".1f")} | {_num(s["mean_comp"], ".1f")} | {_stages(run["stages"])} | '
+                     f'{run["seconds"]:.0f} | '
                      f'{run["load_before"]:.1f} |')
     if scored:
         s = pool(scored)
@@ -240,7 +241,8 @@ def set_section(report_set: ReportSet, results: list[tuple[str, dict]], picture:
                 stages[stage] = stages.get(stage, 0) + n
         lines.append(f'| **all {s["scenes"]}** | {s["objects"]} | {s["found"]} ({s["recall"]:.1f} %) | '
                      f'{s["fp_per_scene"]:.2f}/bag | {_num(s["median_centre_cm"], ".1f")} | '
-                     f'{_num(s["mean_cd_cm"], ".2f")} | {_num(s["mean_f1"], ".1f")} | {_stages(stages)} | '
+                     f'{_num(s["mean_cd_cm"], ".2f")} | {_num(s["mean_f1"], ".1f")} | {_num(s["mean_comp"], ".1f")} | '
+                     f'{_stages(stages)} | '
                      f'{seconds:.0f} | |')
     lines.append('')
     if picture:
@@ -253,19 +255,19 @@ def summary_rows(sections: list[tuple[ReportSet, list[tuple[str, dict]]]]) -> li
     """One row per set: recall, FP per bag, median centre error, mean CD and F1 of matched objects."""
     from frodo_datasets.eval_sets import pool
     head = ['set', 'bags', 'objects', 'recall %', 'FP/bag', 'median centre cm', 'mean CD cm', 'mean F1@5cm',
-            'F1 (misses = 0)', 'seconds/bag']
+            'mean COMP@5cm', 'F1 (misses = 0)', 'seconds/bag']
     lines = ['| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
     for report_set, results in sections:
         scored = [r for _, r in results if 'error' not in r]
         if not scored:
-            lines.append(f'| {report_set.name} | 0 | - | - | - | - | - | - | - | - |')
+            lines.append(f'| {report_set.name} | 0 | - | - | - | - | - | - | - | - | - |')
             continue
         s = pool(scored)
         per_bag = sum(r['run']['seconds'] for r in scored) / len(scored)
         lines.append(f'| {report_set.name} | {s["scenes"]} | {s["objects"]} | {s["recall"]:.1f} | '
                      f'{s["fp_per_scene"]:.2f} | {_num(s["median_centre_cm"], ".1f")} | '
                      f'{_num(s["mean_cd_cm"], ".2f")} | {_num(s["mean_f1"], ".1f")} | '
-                     f'{_num(s["mean_f1_all"], ".1f")} | {per_bag:.0f} |')
+                     f'{_num(s["mean_comp"], ".1f")} | {_num(s["mean_f1_all"], ".1f")} | {per_bag:.0f} |')
     return lines
 
 
@@ -289,9 +291,10 @@ def render(sections: list[tuple[ReportSet, list[tuple[str, dict]]]], pictures: d
              'are matched one-to-one (Hungarian method on the distance between mesh centroids, no match beyond '
              '0.5 m); "centre" is that distance; CD (cm) is the mean of the two directed mean distances between '
              '10,000 surface samples of each mesh, F1@5cm the harmonic mean of accuracy and completion at 5 cm '
-             '(%), both averaged over matched objects; "F1 (misses = 0)" counts every missed object as 0. "final '
-             'stages" counts objects by the last optimiser stage that gave their estimate (fused < sparse < '
-             'dense).', '',
+             '(%), COMP@5cm the completion alone (the share of the ground-truth surface within 5 cm of the '
+             'estimate: low where an object\'s unseen side is wrong), all averaged over matched objects; "F1 '
+             '(misses = 0)" counts every missed object as 0. "final stages" counts objects by the last optimiser '
+             'stage that gave their estimate (fused < sparse < dense).', '',
              '## Summary', '', *summary_rows(sections), '']
     for report_set, results in sections:
         lines += set_section(report_set, results, pictures.get(report_set.name))

@@ -269,8 +269,10 @@ def _live(report: dict) -> bool:
 
 def pool(reports: list[dict]) -> dict:
     """Pooled scores of several runs: recall %, false positives per scene, median centre error (cm),
-    mean CD (cm) and F1@5cm (%) over matched objects, and F1 with every missed object counted as 0."""
+    mean CD (cm), F1@5cm and COMP@5cm (%, completion: of the ground-truth surface, how much lies within 5 cm
+    of the estimate) over matched objects, and F1 with every missed object counted as 0."""
     pairs = [p for r in reports for p in r['pairs']]
+    comp = [p['comp'] for p in pairs if p.get('comp') is not None]
     n_gt = sum(r['overall']['n_gt'] for r in reports)
     fp = sum(r['overall']['false_positives'] for r in reports)
     f1 = [p['f1'] for p in pairs]
@@ -283,6 +285,7 @@ def pool(reports: list[dict]) -> dict:
         'median_centre_cm': 100.0 * float(np.median([p['centroid_distance_m'] for p in pairs])) if pairs else None,
         'mean_cd_cm': float(np.mean([p['cd_cm'] for p in pairs])) if pairs else None,
         'mean_f1': float(np.mean(f1)) if f1 else None,
+        'mean_comp': float(np.mean(comp)) if comp else None,
         'mean_f1_all': float(np.sum(f1) / n_gt) if n_gt else None,
     }
 

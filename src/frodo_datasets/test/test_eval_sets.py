@@ -53,7 +53,7 @@ def test_variants_change_one_condition_at_a_time():
 
 def test_pool_and_table(tmp_path):
     def report(pairs, n_gt, fp):
-        return {'pairs': [{'f1': f, 'cd_cm': c, 'centroid_distance_m': d, 'gt_id': i + 1}
+        return {'pairs': [{'f1': f, 'comp': f + 5, 'cd_cm': c, 'centroid_distance_m': d, 'gt_id': i + 1}
                           for i, (f, c, d) in enumerate(pairs)],
                 'overall': {'n_gt': n_gt, 'false_positives': fp}}
     reports = [report([(80.0, 3.0, 0.05), (60.0, 5.0, 0.15)], 3, 1), report([(90.0, 2.0, 0.10)], 1, 0)]
@@ -61,6 +61,7 @@ def test_pool_and_table(tmp_path):
     assert s['recall'] == 75.0 and s['fp_per_scene'] == 0.5 and s['found'] == 3
     assert np.isclose(s['median_centre_cm'], 10.0) and np.isclose(s['mean_cd_cm'], 10 / 3)
     assert np.isclose(s['mean_f1'], 230 / 3) and np.isclose(s['mean_f1_all'], 230 / 4)
+    assert np.isclose(s['mean_comp'], 245 / 3)
     import json
     (tmp_path / 'results' / 'full').mkdir(parents=True)
     for i, r in enumerate(reports):
