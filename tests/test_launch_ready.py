@@ -6,6 +6,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 
 from diagnostic_msgs.msg import DiagnosticArray
 
@@ -38,6 +39,10 @@ def test_launch_reports_ready_and_play_waits_for_it(tmp_path, capsys):
             assert cli.main(['play', str(tmp_path / 'a.mcap'), '--rate', '0', '--no-progress',
                              '--wait-ready', '60']) == 0
             assert 'graph ready' not in capsys.readouterr().err
+            # The probe's own executor may take a moment to deliver the status that `play` already saw.
+            deadline = time.monotonic() + 10.0
+            while not statuses and time.monotonic() < deadline:
+                time.sleep(0.05)
             assert statuses and statuses[-1] is True
             assert any('graph ready: 2 node(s) up and subscribed' in line for line in lines), lines
         finally:

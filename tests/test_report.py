@@ -63,7 +63,7 @@ def test_a_failing_bag_is_named_and_gives_exit_code_1(tmp_path, in_repo, monkeyp
     code = frodo(['report', '--sets', 'broken', '--page', str(page), '--work', str(tmp_path / 'work')])
     assert code == 1
     assert 'frodo report: failed: broken/broken:' in capsys.readouterr().err
-    assert '| broken | - | - | - | - | - | - | failed:' in page.read_text()
+    assert '| broken | - | - | - | - | - | - | - | failed:' in page.read_text()
 
 
 def test_a_set_without_bags_says_how_to_make_them(tmp_path, in_repo, monkeypatch):
