@@ -21,6 +21,10 @@ def test_sections_return_figures_and_plots_are_written(tmp_path):
     assert bench.write_plots(doc, tmp_path) == ['optimiser.png', 'association.png']
     assert (tmp_path / 'association.png').stat().st_size > 0
     assert 'association,  2 objects' in bench.summary(doc)
+    page = bench.markdown_page(doc | {'plots': ['optimiser.png']}, 'figures')
+    assert page.startswith('# Performance') and doc['machine']['cpu'] in page
+    assert '| 35 | 60.0 | 1.2x |' in page                 # the paper's 70 ms per sparse iteration against 60 ms
+    assert f"| 2 | {row['detections_per_frame']} |" in page and '![optimiser.png](figures/optimiser.png)' in page
 
 
 def test_frodo_bench_writes_json(tmp_path, capsys):
@@ -28,6 +32,10 @@ def test_frodo_bench_writes_json(tmp_path, capsys):
     doc = json.loads((tmp_path / 'bench.json').read_text())
     assert doc['quick'] and doc['bag_read']['bag'] == 'demo_walk.mcap' and doc['machine']['device'] == 'cpu'
     assert 'bag read+decode' in capsys.readouterr().out
+    page = tmp_path / 'docs' / 'performance.md'
+    assert cli.main(['bench', '--quick', '--only', 'association', '--out', str(tmp_path / 'b'), '--device', 'cpu',
+                     '--page', str(page)]) == 0
+    assert '## Association per frame' in page.read_text() and (tmp_path / 'docs' / 'performance' / 'association.png').exists()
 
 
 def test_dense_bench_oracle_code_is_the_true_shape_in_its_object_frame(tmp_path):

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 from pathlib import Path
 
-from frodo_bringup.bench import ALL_SECTIONS, DEMO_BAG, SECTIONS, run_all, summary
+from frodo_bringup.bench import ALL_SECTIONS, DEMO_BAG, SECTIONS, markdown_page, run_all, summary
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -26,6 +27,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='frames of the soak run (demo bag repeated; default: %(default)s)')
     parser.add_argument('--soak-rate', type=float, default=2.0, metavar='X',
                         help='playback rate of the soak run, times real time (default: %(default)s)')
+    parser.add_argument('--page', type=Path, default=None, metavar='FILE',
+                        help='also write the figures as a markdown page, its plots in a folder named after it '
+                             '(the README links docs/performance.md, made with --page docs/performance.md)')
     parser.add_argument('--device', default='auto', help="torch device: 'auto' (cuda if available), 'cpu', 'cuda'")
     parser.add_argument('--threads', type=int, default=0, metavar='N',
                         help='torch CPU threads (default: torch\'s own choice)')
@@ -52,4 +56,15 @@ def run(args: argparse.Namespace) -> int:
     (out / 'bench.json').write_text(json.dumps(doc, indent=2) + '\n')
     print(summary(doc))
     print(f'written: {out / "bench.json"}' + ''.join(f', {out / p}' for p in doc['plots']))
+    if args.page is not None:
+        from frodo_bringup.report import commit_key
+        doc['machine']['commit_key'] = commit_key()
+        figures = args.page.parent / args.page.stem
+        figures.mkdir(parents=True, exist_ok=True)
+        for plot in doc['plots']:
+            if plot.endswith('.png'):
+                shutil.copyfile(out / plot, figures / Path(plot).name)
+        doc['plots'] = [Path(p).name for p in doc['plots']]
+        args.page.write_text(markdown_page(doc, figures.name))
+        print(f'written: {args.page}')
     return 1 if any(isinstance(v, dict) and 'error' in v for v in doc.values()) else 0

@@ -92,6 +92,9 @@ _TABLE: tuple[tuple[str, tuple[str, ...], str], ...] = (
     ('dense_views', ('dense.max_views',), 'Views (spread evenly over the kept ones) used by the dense stage.'),
     ('dense_grid_resolution', ('dense.grid_resolution',), 'Resolution of the adaptive SDF volume / proxy mesh per '
      'iteration.'),
+    ('dense_grid_band', ('dense.grid_band',), 'Between full evaluations of the SDF volume, re-evaluate only its '
+     'points within this normalised distance of the surface (the code moves a little per iteration; 0: the whole '
+     'adaptive volume every iteration).'),
     ('dense_rays_per_view', ('dense.rays_per_view',), 'Pixels (rays) per view and pyramid level of the dense '
      'silhouette.'),
     ('dense_surface_points', ('dense.surface_points',), 'Proxy-mesh vertices used by the dense photometric term.'),

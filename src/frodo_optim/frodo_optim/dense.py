@@ -7,7 +7,9 @@ Per iteration:
 
 1. an adaptively sampled SDF volume (`frodo_shape.meshing.sdf_grid`: coarse grid, re-evaluated near the
    zero level set), evaluated without gradients, and a proxy mesh by marching cubes; its vertices (a fixed
-   number, `surface_points`) are the surface points of the photometric term;
+   number, `surface_points`) are the surface points of the photometric term. Between full evaluations only
+   the volume's points within `grid_band` of the surface are evaluated again (`meshing.update_band`; the code
+   moves a little per step), until the summed change could have moved a kept value into the active band;
 2. the energy  E = ws Es + wp Ep + wg Eg + wd Ed + wr Er  with
    - Es, dense silhouette (paper Eq. 7/8): per pixel the foreground probability accumulated along its ray
      from the SDF samples taken as logits, H = 1 - prod_i sig(zeta * f(x_i)), step `ray_step` (paper r/50),
@@ -17,6 +19,8 @@ Per iteration:
      per view and level are drawn once (seeded). Unknown pixels (other detections, outside the image) are
      left out. The SDF along rays is read from the volume (trilinear), so the decoder runs once per grid
      point, not once per ray sample (the paper's reason for the proxy volume: cost independent of views);
+     rays are clipped to the surface's box and blocks of the volume outside the active band are not read
+     (`surface_bounds`, `_read_volume`: those samples add log sig(zeta f) ~ 0);
    - Ep, photometric (paper Eq. 4) on the proxy surface points, `photometric.photometric_energy`, with
      back-face and z-buffer visibility;
    - Eg, geometric: SLAM landmarks of the object (`optim_node`: the sparse stage's visual-hull set,
@@ -52,7 +56,7 @@ import torch.nn.functional as F
 from frodo_optim import support
 from frodo_optim.photometric import LABEL_OBJECT, LABEL_UNKNOWN, DenseView, ViewBatch, photometric_energy
 from frodo_optim.sparse import code_statistics, select_views, slam_points_near
-from frodo_shape.meshing import grid_points, marching_cubes, sdf_grid
+from frodo_shape.meshing import grid_points, marching_cubes, sdf_grid, update_band
 
 # Ray samples with |zeta f| below this carry the silhouette gradient; beyond it log-sigmoid is flat (its slope
 # is below 1e-5 on the outside; deep inside, H is saturated), so those samples enter as constants.
@@ -96,6 +100,7 @@ class DenseConfig:
     optimise_code: bool = True
     min_improvement: float = 0.0       # relative drop of the check energy needed to accept the dense result
     band_points: int = 8192            # most grid points in the code vector-Jacobian product
+    grid_band: float = 0.25            # normalised: re-evaluate only the grid within this of the surface (0: all)
     screen_iterations: int = 0         # several starts: run each this long, continue only the best (0: all in full)
     seed: int = 0
 
@@ -228,13 +233,16 @@ def make_rays(views: list[DenseView], cfg: DenseConfig, phases: int, gen: torch.
 
 
 def dense_silhouette(volume: torch.Tensor, R: torch.Tensor, t: torch.Tensor, s: torch.Tensor, rays: Rays,
-                     step: float, sharpness: float, confidence: float) -> torch.Tensor:
+                     step: float, sharpness: float, confidence: float,
+                     bounds: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
     """Es (paper Eq. 7/8): mean over views of -log(H Pf + (1 - H)(1 - Pf)) over each view's known pixels.
 
     volume (1, 1, R, R, R): SDF grid indexed [z, y, x] over [-1, 1]^3 (grid_sample layout); R (3, 3), t (3,),
     s (): the object pose. H = 1 - prod sig(zeta f) over samples every `step` along the ray inside the cube.
     Differentiable in the volume values and the pose; all samples are read once without gradient, only those
     with |zeta f| < ACTIVE_LOGIT again with it (the others are constants: their slope is negligible).
+    bounds (lo (3,), hi (3,)): the part of the cube that is sampled (None: all of it); `surface_bounds` gives the
+    box beyond which every sample is a constant near 0, so rays are clipped to it (a speed-up, issue 28).
     """
     o = (rays.origin - t) @ R / s                                                    # (V, N, 3) object frame
     d = rays.direction @ R
@@ -243,6 +251,11 @@ def dense_silhouette(volume: torch.Tensor, R: torch.Tensor, t: torch.Tensor, s: 
     t1, t2 = (-1 - o) / safe, (1 - o) / safe
     t_near = torch.minimum(t1, t2).amax(-1).clamp_min(0)
     t_far = torch.maximum(t1, t2).amin(-1)
+    if bounds is not None:   # clipped on the cube's sample lattice: the samples kept are the unclipped ones
+        b1, b2 = (bounds[0] - o) / safe, (bounds[1] - o) / safe
+        t_box = torch.minimum(b1, b2).amax(-1)
+        t_near = torch.maximum(t_near, t_near + torch.floor((t_box - t_near) / step) * step)
+        t_far = torch.minimum(t_far, torch.maximum(b1, b2).amin(-1))
     hit = t_far > t_near
     length = float((t_far - t_near).detach()[hit].max()) if bool(hit.any()) else 0.0
     n = max(1, int(math.ceil(length / step)))
@@ -252,8 +265,7 @@ def dense_silhouette(volume: torch.Tensor, R: torch.Tensor, t: torch.Tensor, s: 
         ts = t_near[..., None] + k * step                                             # (V, N, n)
         valid = (ts < t_far[..., None]) & hit[..., None]
         x = o[..., None, :] + ts[..., None] * d[..., None, :]
-        f = F.grid_sample(volume, x.reshape(1, V * N, n, 1, 3), mode='bilinear', padding_mode='border',
-                          align_corners=True).reshape(V, N, n)
+        f = _read_volume(volume.detach(), x, valid, ACTIVE_LOGIT / sharpness)
         # samples far from the surface have a flat log-sigmoid: constants; the band gets the gradient
         active = valid & ((sharpness * f).abs() < ACTIVE_LOGIT)
         log_background = (F.logsigmoid(sharpness * f) * (valid & ~active)).sum(-1)      # (V, N)
@@ -270,6 +282,33 @@ def dense_silhouette(volume: torch.Tensor, R: torch.Tensor, t: torch.Tensor, s: 
     pf = confidence * rays.target + (1 - confidence) * (1 - rays.target)
     nll = -torch.log((H * pf + (1 - H) * (1 - pf)).clamp_min(1e-6))
     return ((nll * rays.weight).sum(1) / rays.weight.sum(1).clamp_min(1.0)).mean()
+
+
+BLOCK_CELLS = 4   # side of the blocks of `_read_volume`'s empty-space test, in grid cells
+
+
+def _read_volume(volume: torch.Tensor, x: torch.Tensor, valid: torch.Tensor, far: float) -> torch.Tensor:
+    """Trilinear reads (without gradient) of volume (1, 1, R, R, R) at x (..., 3), skipping empty space: a sample in
+    a block of BLOCK_CELLS^3 cells whose grid values are all >= far reads as 1 (a trilinear value there is >= far
+    as well, so the sample is outside the active band either way and adds log sig(zeta f) ~ 0; issue 28)."""
+    res = volume.shape[-1]
+    blocks = -F.max_pool3d(F.pad(-volume, (0, BLOCK_CELLS,) * 3, value=-math.inf), BLOCK_CELLS + 1, BLOCK_CELLS)[0, 0]
+    nb = blocks.shape[-1]
+    b = ((x + 1) * (0.5 * (res - 1) / BLOCK_CELLS)).long().clamp_(0, nb - 1)
+    keep = valid & (blocks[b[..., 2], b[..., 1], b[..., 0]] < far)
+    f = torch.ones(x.shape[:-1], dtype=volume.dtype, device=volume.device)
+    if bool(keep.any()):
+        f[keep] = F.grid_sample(volume, x[keep].reshape(1, -1, 1, 1, 3), mode='bilinear', padding_mode='border',
+                                align_corners=True).reshape(-1)
+    return f
+
+
+def surface_bounds(vertices: torch.Tensor, sharpness: float, cell: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The box (lo (3,), hi (3,)) in the normalised frame outside which the silhouette's samples are constants:
+    the surface's bounding box grown by the active band (|zeta f| < ACTIVE_LOGIT, assuming |f| grows at least
+    like the distance) and one grid cell (trilinear reads), within [-1, 1]^3."""
+    margin = ACTIVE_LOGIT / sharpness + cell
+    return ((vertices.amin(0) - margin).clamp(-1, 1), (vertices.amax(0) + margin).clamp(-1, 1))
 
 
 def sdf_distance(prior, points_world: torch.Tensor, z: torch.Tensor, R, t, s, truncation: float) -> torch.Tensor:
@@ -421,12 +460,22 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
     if cfg.optimise_code:
         groups.append({'params': [z], 'lr': cfg.lr_code})
     opt = torch.optim.Adam(groups)
-    best, initial, done, reason_stop, stop = None, None, 0, '', DenseStop.COMPLETED
+    best, initial, done, reason_stop, stop, refreshes = None, None, 0, '', DenseStop.COMPLETED, 0
     iters = max(0, int(cfg.iterations))
     loop_start = time.perf_counter()
+    grid, drift = None, 0.0
+    # a grid value kept from an earlier iteration stays outside the active band while its drift (bounded by the
+    # summed largest change in the band) leaves it beyond ACTIVE_LOGIT / sharpness and one cell of the surface
+    drift_limit = cfg.grid_band - ACTIVE_LOGIT / cfg.sharpness - cell
     for it in range(iters + 1):
         zc = z.detach()
-        grid = sdf_grid(lambda p: prior.sdf_numpy(p, zc.cpu().numpy()), Rg, coarse=max(1, int(cfg.grid_coarse)))
+        code_np = zc.cpu().numpy()
+        if grid is None or drift_limit <= 0 or drift >= drift_limit:
+            grid, drift = sdf_grid(lambda p: prior.sdf_numpy(p, code_np), Rg, coarse=max(1, int(cfg.grid_coarse))), 0.0
+            refreshes += 1
+        else:
+            grid, change = update_band(lambda p: prior.sdf_numpy(p, code_np), grid, cfg.grid_band)
+            drift += change
         mesh = marching_cubes(grid)
         if len(mesh.vertices) == 0 or not np.isfinite(grid).all():
             reason_stop, stop = f'code of iteration {it} has no surface', DenseStop.NO_SURFACE
@@ -435,8 +484,10 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
         R = so3_exp(w * axes) @ R0_t
         s = torch.exp(log_s)
         rays = phase_rays[min(phases - 1, it * phases // max(iters, 1))]
-        terms = {'silhouette': dense_silhouette(volume, R, t, s, rays, cfg.ray_step, cfg.sharpness, cfg.mask_confidence)}
         verts = torch.as_tensor(mesh.vertices, dtype=torch.float32, device=dev)
+        bounds = surface_bounds(verts, cfg.sharpness, cell)
+        terms = {'silhouette': dense_silhouette(volume, R, t, s, rays, cfg.ray_step, cfg.sharpness, cfg.mask_confidence,
+                                                bounds)}
         if len(verts) > cfg.surface_points:
             verts = verts[torch.randperm(len(verts), generator=gen)[:cfg.surface_points].to(dev)]
         terms['photometric'] = z.new_zeros(())
@@ -468,7 +519,7 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
         total = sum(weights[k] * v for k, v in terms.items())
         with torch.no_grad():   # the check energy: same terms, silhouette on the fixed finest-level rays
             sil_check = terms['silhouette'] if rays is check_rays else dense_silhouette(
-                volume, R, t, s, check_rays, cfg.ray_step, cfg.sharpness, cfg.mask_confidence)
+                volume, R, t, s, check_rays, cfg.ray_step, cfg.sharpness, cfg.mask_confidence, bounds)
             check = float(total - cfg.w_silhouette * terms['silhouette'] + cfg.w_silhouette * sil_check)
             values = {k: float(v) for k, v in terms.items()} | {'silhouette': float(sil_check), 'total': check}
         if initial is None:

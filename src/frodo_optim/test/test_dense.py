@@ -11,10 +11,11 @@ from frodo_common.evaluation import point_metrics, sample_surface
 from frodo_common.geometry import look_at
 from frodo_datasets.render import Material, Renderer, RenderObject, intrinsics
 from frodo_optim.dense import (DenseConfig, Rays, dense_silhouette, implicit_surface_points, make_rays,
-                               pyramid_levels, refine_dense, refine_dense_starts, sdf_distance, so3_exp)
+                               pyramid_levels, refine_dense, refine_dense_starts, sdf_distance, so3_exp,
+                               surface_bounds)
 from frodo_optim.photometric import (LABEL_OBJECT, ViewBatch, dense_view_from_frame, photometric_energy, visible)
 from frodo_optim.sparse import pose_matrix
-from frodo_shape.meshing import sdf_grid
+from frodo_shape.meshing import marching_cubes, sdf_grid
 from frodo_shape.prior import ShapePrior
 
 W, H = 160, 120
@@ -147,6 +148,49 @@ def test_dense_silhouette_gradients(prior, scene):
     true = dense_silhouette(_volume(prior, scene['code']).double(), Tt[:3, :3] / st, Tt[:3, 3], st, rays64,
                             cfg.ray_step, cfg.sharpness, 0.95)
     assert float(true) < float(energy_pose(p0))
+
+
+def _silhouette_every_sample(volume, R, t, s, rays, step, sharpness, confidence):
+    """Es read at every lattice sample of every ray inside the cube (no clipping, no empty-space skipping)."""
+    o = (rays.origin - t) @ R / s
+    d = rays.direction @ R
+    d = d / torch.linalg.norm(d, dim=-1, keepdim=True)
+    t1, t2 = (-1 - o) / d, (1 - o) / d
+    t_near = torch.minimum(t1, t2).amax(-1).clamp_min(0)
+    t_far = torch.maximum(t1, t2).amin(-1)
+    k = torch.arange(int(math.ceil(2 * math.sqrt(3) / step)), dtype=o.dtype) + 0.5
+    ts = t_near[..., None] + k * step
+    valid = (ts < t_far[..., None]) & (t_far > t_near)[..., None]
+    x = o[..., None, :] + ts[..., None] * d[..., None, :]
+    f = torch.nn.functional.grid_sample(volume, x.reshape(1, -1, 1, 1, 3), align_corners=True,
+                                        padding_mode='border').reshape(valid.shape)
+    H = 1 - torch.exp((torch.nn.functional.logsigmoid(sharpness * f) * valid).sum(-1))
+    pf = confidence * rays.target + (1 - confidence) * (1 - rays.target)
+    nll = -torch.log((H * pf + (1 - H) * (1 - pf)).clamp_min(1e-6))
+    return ((nll * rays.weight).sum(1) / rays.weight.sum(1).clamp_min(1.0)).mean()
+
+
+def test_clipped_and_skipped_silhouette_equals_reading_every_sample(prior, scene):
+    """Rays clipped to the surface's box and empty blocks skipped (issue 28) leave Es and its gradients as reading
+    every sample does: the samples left out are all outside the active band (log sig(zeta f) ~ 0)."""
+    cfg = DenseConfig()
+    rays = make_rays(scene['views'], cfg, 1, torch.Generator().manual_seed(0))[0]
+    grid = sdf_grid(lambda p: prior.sdf_numpy(p, scene['other']), 32, coarse=2)
+    volume = torch.as_tensor(np.ascontiguousarray(grid.transpose(2, 1, 0)))[None, None]
+    verts = torch.as_tensor(marching_cubes(grid).vertices, dtype=torch.float32)
+    bounds = surface_bounds(verts, cfg.sharpness, 2 / 31)
+    assert float((bounds[1] - bounds[0]).prod()) < 8          # the box is smaller than the cube
+    T = torch.as_tensor(pose_matrix(0.8, scene['T'][:3, 3] + [0.03, 0, 0], 0.52), dtype=torch.float32)
+    pose = [torch.zeros(3, requires_grad=True), T[:3, 3].clone().requires_grad_(True)]
+    energies, grads = [], []
+    for fn, extra in ((dense_silhouette, (bounds,)), (_silhouette_every_sample, ())):
+        vol = volume.clone().requires_grad_(True)
+        e = fn(vol, so3_exp(pose[0]) @ (T[:3, :3] / 0.52), pose[1], torch.tensor(0.52), rays, cfg.ray_step,
+               cfg.sharpness, cfg.mask_confidence, *extra)
+        energies.append(float(e))
+        grads.append(torch.cat([g.reshape(-1) for g in torch.autograd.grad(e, [vol, *pose])]))
+    assert 0.05 < energies[1] < 5 and abs(energies[0] - energies[1]) < 1e-4 * energies[1]
+    assert float(torch.linalg.norm(grads[0] - grads[1])) < 1e-3 * float(torch.linalg.norm(grads[1]))
 
 
 def test_photometric_gradient_and_visibility(prior, scene):

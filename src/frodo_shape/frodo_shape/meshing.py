@@ -4,6 +4,9 @@
 interpolated coarse value is within a few coarse cells of the surface; elsewhere the trilinearly
 upsampled coarse values are kept (they are far from the zero level set, so the sign is right and
 marching cubes never looks at them). This is ~5-10x fewer decoder evaluations than a full grid.
+
+`update_band` serves a field that changes a little at a time (the dense stage's code, one optimiser step per
+grid): only the points of the previous grid within a narrow band of the surface are evaluated again.
 """
 from __future__ import annotations
 
@@ -22,11 +25,13 @@ def grid_points(resolution: int, bound: float = 1.0) -> np.ndarray:
 
 
 def sdf_grid(sdf_fn: Callable[[np.ndarray], np.ndarray], resolution: int = 64, bound: float = 1.0,
-             coarse: int = 4, band: float = 2.5) -> np.ndarray:
+             coarse: int = 4, band: float = 1.5) -> np.ndarray:
     """SDF values (R, R, R) on the grid of `grid_points(resolution, bound)`.
 
     sdf_fn: points (P, 3) float32 -> sdf (P,). coarse: coarse-to-fine factor (1 = evaluate everything).
-    band: fine points within `band` coarse cell sizes of the surface (by the coarse values) are evaluated.
+    band: fine points within `band` coarse cell sizes of the surface (by the coarse values) are evaluated. 1.5
+    covers the trilinear error of the coarse values (under a coarse cell), so every point outside has the sign of
+    the full grid's and marching cubes (which reads only cells with a sign change) gives the full grid's mesh.
     """
     if coarse <= 1 or resolution < 4 * coarse:
         return sdf_fn(grid_points(resolution, bound).reshape(-1, 3)).reshape((resolution,) * 3)
@@ -41,6 +46,20 @@ def sdf_grid(sdf_fn: Callable[[np.ndarray], np.ndarray], resolution: int = 64, b
         pts = grid_points(resolution, bound)[near]
         up[near] = sdf_fn(pts)
     return up
+
+
+def update_band(sdf_fn: Callable[[np.ndarray], np.ndarray], grid: np.ndarray, band: float,
+                bound: float = 1.0) -> tuple[np.ndarray, float]:
+    """The grid (R, R, R) of a slightly changed field: the points with |grid| < band evaluated again, the others
+    kept. Returns (new grid, the largest change at a re-evaluated point): the caller bounds how far the kept
+    values may have drifted by the sum of these changes and calls `sdf_grid` again before that reaches its band.
+    """
+    near = np.abs(grid) < band
+    out = grid.copy()
+    if not near.any():
+        return out, 0.0
+    out[near] = sdf_fn(grid_points(grid.shape[0], bound)[near])
+    return out, float(np.abs(out[near] - grid[near]).max())
 
 
 def marching_cubes(grid: np.ndarray, bound: float = 1.0, level: float = 0.0) -> trimesh.Trimesh:
