@@ -266,7 +266,7 @@ def search(points_norm: np.ndarray, box, views, batch, slam_points: np.ndarray |
         total = w_silhouette * (e_out + e_box)
         if marks_t is not None:
             with torch.no_grad():   # nearest neighbours without gradient, their distances with (cheap backward)
-                nearest = torch.cdist(marks_t[None].expand(len(world), -1, -1), world).argmin(2)   # (H, L)
+                nearest = torch.cdist(marks_t[None].expand(len(world), -1, -1), world).min(2).indices   # (H, L)
             matched = torch.gather(world, 1, nearest[..., None].expand(-1, -1, 3))
             d = ((marks_t[None] - matched).square().sum(-1) + 1e-9).sqrt()                     # (H, L)
             total = total + w_geometry * d.clamp(max=truncation).mean(1) / truncation

@@ -266,7 +266,7 @@ class _Batch:
             su = torch.where(sub_valid, sub_uv[..., 0], torch.full_like(sub_uv[..., 0], 1e7))
             d2 = (self.mask_u[:, :, None] - su[:, None, :]).square_()
             d2.add_((self.mask_v[:, :, None] - sub_uv[..., 1].contiguous()[:, None, :]).square_())  # (V, M, S)
-            nearest = d2.argmin(2)                                                       # (V, M)
+            nearest = d2.min(2).indices    # (V, M); min(dim) is ~2x faster than argmin on the CPU
         matched = torch.gather(sub_uv, 1, nearest[..., None].expand(-1, -1, 2))
         e_mp = ((self.mask_uv - matched).square().sum(-1) + 1e-6).sqrt().mean(1) / self.diag[:, 0]
         return (e_pm + e_mp).mean()
@@ -282,7 +282,7 @@ def _geometry(world_pts: torch.Tensor, slam: torch.Tensor | None, trunc: float) 
     if slam is None or len(slam) == 0:
         return world_pts.new_zeros(())
     with torch.no_grad():
-        nearest = torch.cdist(slam, world_pts).argmin(1)
+        nearest = torch.cdist(slam, world_pts).min(1).indices
     d = torch.linalg.norm(slam - world_pts[nearest] + 1e-9, dim=1)
     return d.clamp(max=trunc).mean() / trunc
 
