@@ -257,27 +257,27 @@ def dense_silhouette(volume: torch.Tensor, R: torch.Tensor, t: torch.Tensor, s: 
         t_near = torch.maximum(t_near, t_near + torch.floor((t_box - t_near) / step) * step)
         t_far = torch.minimum(t_far, torch.maximum(b1, b2).amin(-1))
     hit = t_far > t_near
-    length = float((t_far - t_near).detach()[hit].max()) if bool(hit.any()) else 0.0
-    n = max(1, int(math.ceil(length / step)))
     V, N = o.shape[:2]
-    k = torch.arange(n, dtype=o.dtype, device=o.device) + 0.5
-    with torch.no_grad():   # every sample once without gradient
-        ts = t_near[..., None] + k * step                                             # (V, N, n)
-        valid = (ts < t_far[..., None]) & hit[..., None]
-        x = o[..., None, :] + ts[..., None] * d[..., None, :]
-        f = _read_volume(volume.detach(), x, valid, ACTIVE_LOGIT / sharpness)
+    with torch.no_grad():   # every sample once without gradient, flat: ray r has count[r] at t_near + (k + 1/2) step
+        count = torch.where(hit, torch.ceil((t_far - t_near) / step - 0.5).clamp_min(0),
+                            torch.zeros_like(t_near)).long().reshape(-1)
+        ray = torch.repeat_interleave(torch.arange(V * N, device=o.device), count)
+        first = torch.cumsum(count, 0) - count
+        k = (torch.arange(len(ray), device=o.device) - first[ray]).to(o.dtype) + 0.5
+        x = o.reshape(-1, 3)[ray] + (t_near.reshape(-1)[ray] + k * step)[:, None] * d.reshape(-1, 3)[ray]
+        f = _read_volume(volume.detach(), x, ACTIVE_LOGIT / sharpness)
         # samples far from the surface have a flat log-sigmoid: constants; the band gets the gradient
-        active = valid & ((sharpness * f).abs() < ACTIVE_LOGIT)
-        log_background = (F.logsigmoid(sharpness * f) * (valid & ~active)).sum(-1)      # (V, N)
-    if torch.is_grad_enabled() and bool(active.any()):
-        v_i, n_i, k_i = torch.nonzero(active, as_tuple=True)
-        t_a = t_near[v_i, n_i] + k[k_i] * step
-        x_a = o[v_i, n_i] + t_a[:, None] * d[v_i, n_i]
+        active = (sharpness * f).abs() < ACTIVE_LOGIT
+        log_background = torch.zeros(V * N, dtype=o.dtype, device=o.device).index_add_(
+            0, ray, F.logsigmoid(sharpness * f) * ~active)
+    r_a, k_a = ray[active], k[active]
+    if torch.is_grad_enabled() and len(r_a):
+        x_a = o.reshape(-1, 3)[r_a] + (t_near.reshape(-1)[r_a] + k_a * step)[:, None] * d.reshape(-1, 3)[r_a]
         f_a = F.grid_sample(volume, x_a.reshape(1, -1, 1, 1, 3), mode='bilinear', padding_mode='border',
                             align_corners=True).reshape(-1)
-        log_background = log_background.reshape(-1).index_add(0, v_i * N + n_i, F.logsigmoid(sharpness * f_a)).reshape(V, N)
     else:
-        log_background = log_background + (F.logsigmoid(sharpness * f) * active).sum(-1)
+        f_a = f[active]
+    log_background = log_background.index_add(0, r_a, F.logsigmoid(sharpness * f_a)).reshape(V, N)
     H = 1 - torch.exp(log_background)
     pf = confidence * rays.target + (1 - confidence) * (1 - rays.target)
     nll = -torch.log((H * pf + (1 - H) * (1 - pf)).clamp_min(1e-6))
@@ -287,17 +287,17 @@ def dense_silhouette(volume: torch.Tensor, R: torch.Tensor, t: torch.Tensor, s: 
 BLOCK_CELLS = 4   # side of the blocks of `_read_volume`'s empty-space test, in grid cells
 
 
-def _read_volume(volume: torch.Tensor, x: torch.Tensor, valid: torch.Tensor, far: float) -> torch.Tensor:
-    """Trilinear reads (without gradient) of volume (1, 1, R, R, R) at x (..., 3), skipping empty space: a sample in
+def _read_volume(volume: torch.Tensor, x: torch.Tensor, far: float) -> torch.Tensor:
+    """Trilinear reads (without gradient) of volume (1, 1, R, R, R) at x (K, 3), skipping empty space: a sample in
     a block of BLOCK_CELLS^3 cells whose grid values are all >= far reads as 1 (a trilinear value there is >= far
     as well, so the sample is outside the active band either way and adds log sig(zeta f) ~ 0; issue 28)."""
     res = volume.shape[-1]
     blocks = -F.max_pool3d(F.pad(-volume, (0, BLOCK_CELLS,) * 3, value=-math.inf), BLOCK_CELLS + 1, BLOCK_CELLS)[0, 0]
     nb = blocks.shape[-1]
     b = ((x + 1) * (0.5 * (res - 1) / BLOCK_CELLS)).long().clamp_(0, nb - 1)
-    keep = valid & (blocks[b[..., 2], b[..., 1], b[..., 0]] < far)
-    f = torch.ones(x.shape[:-1], dtype=volume.dtype, device=volume.device)
-    if bool(keep.any()):
+    keep = torch.nonzero(blocks[b[:, 2], b[:, 1], b[:, 0]] < far).squeeze(1)
+    f = torch.ones(len(x), dtype=volume.dtype, device=volume.device)
+    if len(keep):
         f[keep] = F.grid_sample(volume, x[keep].reshape(1, -1, 1, 1, 3), mode='bilinear', padding_mode='border',
                                 align_corners=True).reshape(-1)
     return f
