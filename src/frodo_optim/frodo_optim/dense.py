@@ -138,6 +138,7 @@ class DenseResult:
     views: int = 0
     seconds: float = 0.0
     seconds_per_iteration: float = 0.0
+    check_energies: list[float] = field(default_factory=list)   # of every iteration of this run, in order
 
     @property
     def yaw(self) -> float:
@@ -460,7 +461,7 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
     if cfg.optimise_code:
         groups.append({'params': [z], 'lr': cfg.lr_code})
     opt = torch.optim.Adam(groups)
-    best, initial, done, reason_stop, stop, refreshes = None, None, 0, '', DenseStop.COMPLETED, 0
+    best, initial, done, reason_stop, stop, history = None, None, 0, '', DenseStop.COMPLETED, []
     iters = max(0, int(cfg.iterations))
     loop_start = time.perf_counter()
     grid, drift = None, 0.0
@@ -472,7 +473,6 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
         code_np = zc.cpu().numpy()
         if grid is None or drift_limit <= 0 or drift >= drift_limit:
             grid, drift = sdf_grid(lambda p: prior.sdf_numpy(p, code_np), Rg, coarse=max(1, int(cfg.grid_coarse))), 0.0
-            refreshes += 1
         else:
             grid, change = update_band(lambda p: prior.sdf_numpy(p, code_np), grid, cfg.grid_band)
             drift += change
@@ -527,6 +527,7 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
         if not math.isfinite(check):
             reason_stop, stop = f'energy not finite at iteration {it}', DenseStop.NON_FINITE_ENERGY
             break
+        history.append(check)
         if best is None or check < best[0]:
             best = (check, it, zc.clone(), R.detach().clone(), t.detach().clone(), float(log_s.detach()), values)
         if it == iters:
@@ -565,7 +566,8 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
     if reason_stop:
         reason += f'; stopped: {reason_stop}'
     if not improved:
-        return unchanged(stop, reason, energies=values_b, initial_energies=initial, iterations=done,
+        return unchanged(stop, reason, energies=values_b, initial_energies=initial, iterations=done, check_energies=history,
                          seconds_per_iteration=per_it)
-    return DenseResult(zb.cpu().numpy().astype(np.float32), T, sb, Rb.double().cpu().numpy(), tb.double().cpu().numpy(), True, reason,
-                       stop, values_b, initial, done, best_it, len(views), time.perf_counter() - start, per_it)
+    return DenseResult(zb.cpu().numpy().astype(np.float32), T, sb, Rb.double().cpu().numpy(), tb.double().cpu().numpy(),
+                       True, reason, stop, values_b, initial, iterations=done, best_iteration=best_it, views=len(views),
+                       seconds=time.perf_counter() - start, seconds_per_iteration=per_it, check_energies=history)

@@ -251,6 +251,9 @@ def test_dense_refinement_improves_a_perturbed_start(prior, scene):
     res = refine_dense(prior, code0, T0, scene['views'], config=cfg)
     assert res.improved, res.reason
     assert res.energies['total'] < res.initial_energies['total']
+    assert res.views == len(scene['views']) and res.iterations == 12 and res.seconds_per_iteration > 0
+    assert len(res.check_energies) == 13 and min(res.check_energies) == res.energies['total']
+    assert res.check_energies[res.best_iteration] == res.energies['total']
     err0 = np.linalg.norm(T0[:3, 3] - scene['T'][:3, 3])
     assert np.linalg.norm(res.translation - scene['T'][:3, 3]) < err0
     before = _surface_distance(prior, code0, T0, scene['code'], scene['T'])
