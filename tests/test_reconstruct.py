@@ -3,6 +3,7 @@ result for the same inputs, outputs as `frodo run` writes them, and bags that ca
 import json
 from pathlib import Path
 
+import numpy as np
 import pyarrow as pa
 import pytest
 from rerun.chunk import RrdReader
@@ -56,6 +57,28 @@ def test_reconstruct_finds_every_demo_object_and_is_deterministic(fast_params):
     gt = load_ground_truth_bag(DEMO)
     report = evaluate([EvalObject(e.object_id, e.class_name, e.mesh_world) for e in first.estimates.values()], gt)
     assert not report.unmatched_gt and not report.unmatched_pred
+
+
+def test_objects_refined_in_worker_processes_are_the_same_objects(fast_params):
+    """workers=2: the objects shared out among two spawned processes (one torch thread each) come back as the same
+    map: same objects, classes, stages and stage records, placed where one process places them (the thread count
+    changes only the floating-point order)."""
+    import torch
+    config = PipelineConfig.from_params_files([fast_params])
+    threads = torch.get_num_threads()
+    one = reconstruct(DEMO, config)
+    lines = []
+    two = reconstruct(DEMO, config, progress=lines.append, workers=2)
+    assert torch.get_num_threads() == threads                  # the workers' thread count is theirs only
+    assert sorted(two.estimates) == sorted(one.estimates) == [0, 1, 2, 3]
+    for oid, e in one.estimates.items():
+        other = two.estimates[oid]
+        assert (other.class_name, other.stage) == (e.class_name, e.stage)
+        assert np.linalg.norm(other.T_world_object[:3, 3] - e.T_world_object[:3, 3]) < 0.05
+        assert [s.stage for s in two.outcomes[oid].stages] == [s.stage for s in one.outcomes[oid].stages]
+    assert sum(line.startswith('object ') for line in lines) == sum(len(o.stages) for o in two.outcomes.values())
+    with pytest.raises(ValueError, match='workers'):
+        reconstruct(DEMO, config, workers=0)
 
 
 def test_cli_writes_what_frodo_run_writes_and_scores_it(tmp_path, fast_params, capsys):

@@ -7,7 +7,9 @@ encoder + code fusion (`frodo_shape.encoding.CodeEncoder`) -> per-object fused -
 
 1. pass 1 associates every frame, then fits the boxes of every object to all its detections;
 2. pass 2 encodes each kept detection and stores its views under the association's final ids;
-3. each object is reconstructed once, by id, with all its views.
+3. each object is reconstructed once, by id, with all its views; with `workers` > 1 the objects are shared out
+   among that many processes (each with its share of torch's threads), so a machine with more cores refines
+   several objects at once.
 
 The live graph converges to the same object map when its optimiser catches up; offline nothing waits for the
 clock, and the result depends only on the bag and the configuration: same inputs, same `objects.json` (timings
@@ -215,17 +217,51 @@ def bag_frames(reader: BagReader, need_instances: bool, with_rgb: bool = True) -
             yield frame
 
 
+_WORKER: dict[str, Any] = {}    # the prior of an object worker process (`workers` > 1)
+
+
+def _worker_start(prior_path: str, device: str, threads: int) -> None:
+    import torch
+    torch.set_num_threads(threads)
+    _WORKER['prior'] = ShapePrior.load(prior_path, device=device)
+
+
+def _worker_object(optim: OptimConfig, obj: ObjectInput, views: ViewMemory,
+                   scene: Scene) -> tuple[ObjectOutcome, ObjectEstimate | None]:
+    """One object's fused -> sparse -> dense in a worker process: its outcome and final estimate."""
+    reconstructor = ObjectReconstructor(_WORKER['prior'], optim)
+    outcome = reconstructor.reconstruct(obj, views, scene)
+    return outcome, reconstructor.estimates.get(obj.object_id)
+
+
+def _object_pool(workers: int, prior: ShapePrior, device: str):
+    """`workers` fresh (spawned) processes, each with the prior loaded and threads / workers torch threads."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+    import torch
+    threads = max(1, torch.get_num_threads() // workers)
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context('spawn'), initializer=_worker_start,
+                               initargs=(str(prior.path), device, threads))
+    for _ in range(workers):      # processes start on demand: ask for all of them now
+        pool.submit(int)
+    return pool
+
+
 def reconstruct(bag: str | os.PathLike, config: PipelineConfig | None = None,
                 progress: Callable[[str], None] | None = None, prior: ShapePrior | None = None,
-                on_stage: Callable[[StageOutcome], None] | None = None) -> ObjectMap:
+                on_stage: Callable[[StageOutcome], None] | None = None, workers: int = 1) -> ObjectMap:
     """Reconstruct every object of a contract bag (see the module docstring). progress: called with one line
     per phase and per object stage; prior: an already loaded prior (default: `config.optim.prior`); on_stage:
-    called with each object stage's `StageOutcome` as it ends (stage, reason, seconds, iterations, views).
+    called with each object stage's `StageOutcome` as it ends (stage, reason, seconds, iterations, views; with
+    workers > 1 when the object's last stage has ended). workers: processes that refine objects at the same
+    time (1: this process, one object after the other); results depend on it through each worker's thread count
+    only (floating-point order), and are the same from run to run for a given value.
     Raises preflight.BagRefused when the bag cannot give objects (checked before any work), PipelineError
     when no frame is complete."""
+    if int(workers) < 1:
+        raise ValueError(f'workers must be >= 1, got {workers}')
     config = config or PipelineConfig()
     say = progress or (lambda line: None)
-    seconds: dict[str, float] = {}
     reader = BagReader(bag)
     backend = {spec.name: spec.default for spec in DETECTION_PARAMS} | config.detection
     check_bag(reader, backend['backend'])
@@ -233,6 +269,18 @@ def reconstruct(bag: str | os.PathLike, config: PipelineConfig | None = None,
     detector = make_detector(backend)
     if prior is None:
         prior = ShapePrior.load(config.optim.prior, device=config.optim.device)
+    # started now, so that the workers' start-up (imports, prior) overlaps the association and the encoding
+    pool = _object_pool(int(workers), prior, config.optim.device) if int(workers) > 1 else None
+    try:
+        return _reconstruct(reader, config, prior, detector, filt, say, on_stage, pool)
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+
+
+def _reconstruct(reader: BagReader, config: PipelineConfig, prior: ShapePrior, detector, filt, say, on_stage,
+                 pool) -> ObjectMap:
+    seconds: dict[str, float] = {}
 
     # pass 1: detection + association of every frame, then every object's box fitted to all its detections
     t0 = time.perf_counter()
@@ -301,14 +349,28 @@ def reconstruct(bag: str | os.PathLike, config: PipelineConfig | None = None,
         if on_stage is not None:
             on_stage(stage)
 
-    for oid in todo:
-        category, num_views, code = codes[oid]
-        outcome = reconstructor.reconstruct(ObjectInput(oid, tracks[oid][0], category, tracks[oid][1], code, num_views),
-                                            views, scene, on_stage=stage_ended)
+    inputs = {oid: ObjectInput(oid, tracks[oid][0], codes[oid][0], tracks[oid][1], codes[oid][2], codes[oid][1])
+              for oid in todo}
+    if pool is None:
+        for oid in todo:
+            outcomes[oid] = reconstructor.reconstruct(inputs[oid], views, scene, on_stage=stage_ended)
+        estimates = dict(reconstructor.estimates)
+    else:
+        from concurrent.futures import as_completed
+        futures = {pool.submit(_worker_object, config.optim, inputs[oid], views.of_object(oid), scene): oid
+                   for oid in todo}
+        finals: dict[int, ObjectEstimate | None] = {}
+        for future in as_completed(futures):
+            oid = futures[future]
+            outcomes[oid], finals[oid] = future.result()
+            for stage in outcomes[oid].stages:
+                stage_ended(stage)
+        outcomes = {oid: outcomes[oid] for oid in todo}
+        estimates = {oid: finals[oid] for oid in todo if finals[oid] is not None}
+    for oid, outcome in outcomes.items():
         if outcome.error:
             reader.problems.append(f'object {oid}: {outcome.error}')
             say(f'object {oid}: {outcome.error}')
-        outcomes[oid] = outcome
     seconds['optimisation'] = time.perf_counter() - t0
-    return ObjectMap(dict(reconstructor.estimates), outcomes, config.world_frame, frames,
+    return ObjectMap(estimates, outcomes, config.world_frame, frames,
                      topics.GROUND_TRUTH in reader.topics(), list(reader.problems), seconds, tracks, associations)

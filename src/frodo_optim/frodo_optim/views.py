@@ -74,6 +74,16 @@ class ViewMemory:
                 + self.dense.keys_of(object_id, self.config.fill_views))
         return max((k[0] for k in keys), default=0)
 
+    def of_object(self, object_id: int) -> 'ViewMemory':
+        """A copy holding only the object's stored views (all its stages read), to send to another process."""
+        out = ViewMemory(self.config)
+        for mine, theirs in ((out.sparse, self.sparse), (out.dense, self.dense)):
+            mine.per_object, mine.capacity = theirs.per_object, theirs.capacity
+            for key, (oid, kept) in theirs.owner.items():
+                if oid == object_id:
+                    mine.views[key], mine.owner[key] = theirs.views[key], (oid, kept)
+        return out
+
     def count(self, object_id: int) -> int:
         """Sparse views stored for the object (kept ones only)."""
         return len(self.sparse.views_of(object_id))
