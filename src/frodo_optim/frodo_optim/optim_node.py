@@ -47,6 +47,7 @@ from frodo_common.node import ERROR, OK, WARN, FrodoNode, run_node
 from frodo_common.frame_cache import FrameCache
 from frodo_common.params import ParamSpec
 from frodo_common.frames import depth_to_metres
+from frodo_common.geometry import Box3D
 from frodo_optim.config import PARAMS as OPTIM_PARAMS, optim_config
 from frodo_optim.core import ObjectEstimate
 from frodo_optim.merge import TABLE_KIND, MapMerger, Retractions
@@ -72,6 +73,10 @@ PARAMS = OPTIM_PARAMS + (
 )
 
 CLASS_COLOURS = {c.name: (*c.colour, 1.0) for c in CATEGORIES}   # chair orange, dining table blue, ...
+
+
+def _same_box(a: Box3D, b: Box3D) -> bool:
+    return bool(np.array_equal(a.center, b.center) and np.array_equal(a.size, b.size) and a.yaw == b.yaw)
 
 
 class OptimNode(FrodoNode):
@@ -193,9 +198,12 @@ class OptimNode(FrodoNode):
                         self.report_error('tracks', f'object {m.id}: {err}')
                         continue
                     if np.all(np.isfinite(box.center)) and np.all(np.isfinite(box.size)) and np.all(box.size > 0):
+                        previous = self.tracks.get(m.id)
                         self.tracks[m.id] = (m.ns, box)
                         self.input_stamps[m.id] = max(self.input_stamps.get(m.id, 0), stamp)
-                        self.queue.request(m.id)
+                        # the association re-sends every track with each frame: only a changed one is new work
+                        if previous is None or previous[0] != m.ns or not _same_box(previous[1], box):
+                            self.queue.request(m.id)
                     else:
                         self.report_error('tracks', f'object {m.id}: invalid box {box}')
             self.cond.notify()

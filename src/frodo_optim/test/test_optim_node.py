@@ -117,6 +117,9 @@ def test_optimiser_serves_callbacks_while_optimising_and_reports_stages(two_chai
                     changes.append((int(oid), STAGES[stage]))
         assert changes.index((2, 'sparse')) < changes.index((1, 'dense')), changes
         assert int(status().get('dense_yielded', 0)) >= 1 and status().get('waiting_dense') == '0', status()
+        # object 1's track and code were sent again unchanged with object 2's: no new work for it (one sparse run
+        # each; a re-sent, unchanged track used to restart its pipeline from the fused stage)
+        assert status().get('sparse_runs') == '2', status()
         assert STAGE_REASONS.index('in progress') == 0
         # Stamps: data time. The tracks and codes carry the first frame's stamp, the views all six frames': every
         # object estimate is stamped with the newest frame it used, the table with the newest frame received.
