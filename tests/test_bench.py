@@ -88,5 +88,6 @@ def test_stage_counts_add_up_and_are_stated_against_the_roofline(tmp_path):
 
 def test_stage_latencies_count_from_each_objects_first_track():
     confirmed = {1: 10.0, 2: 12.0, 3: 20.0}
-    reached = {1: {'fused': 10.5, 'sparse': 14.0, 'dense': 30.0}, 2: {'fused': 13.25, 'sparse': 18.0}}
-    assert bench.stage_latencies(confirmed, reached) == {'fused': [0.5, 1.25], 'sparse': [4.0, 6.0], 'dense': [20.0]}
+    reached = {1: {'code': 10.25, 'fused': 10.5, 'sparse': 14.0, 'dense': 30.0}, 2: {'fused': 13.25, 'sparse': 18.0}}
+    assert bench.stage_latencies(confirmed, reached) == {'code': [0.25], 'fused': [0.5, 1.25], 'sparse': [4.0, 6.0],
+                                                         'dense': [20.0]}

@@ -318,10 +318,10 @@ def association_latency(objects: list[int], frames: int, seed: int = 0) -> dict[
 
 def stage_latencies(confirmed: dict[int, float], reached: dict[int, dict[str, float]]) -> dict[str, list[float]]:
     """Per stage, the seconds from each object's confirmation (its first track) to its first state at that stage,
-    sorted; objects that never reached a stage are left out of its list."""
+    sorted, and to its first fused code ('code'); objects that never reached a stage are left out of its list."""
     from frodo_optim.states import STAGES
     return {stage: sorted(round(reached[oid][stage] - confirmed[oid], 2) for oid in confirmed
-                          if stage in reached.get(oid, {})) for stage in STAGES}
+                          if stage in reached.get(oid, {})) for stage in ('code', *STAGES)}
 
 
 def end_to_end(bag: Path, out: Path, rate: float) -> dict[str, Any]:
@@ -353,6 +353,12 @@ def end_to_end(bag: Path, out: Path, rate: float) -> dict[str, Any]:
         with lock:
             for oid, stage in zip(table['object_id'], table['stage']):
                 reached.setdefault(int(oid), {}).setdefault(STAGES[int(stage)], now)
+
+    def on_codes(msg: PointCloud2) -> None:    # the fused stage needs the object's code (shape_node) as well
+        now = time.monotonic()
+        with lock:
+            for oid in conv.cloud_to_table(msg)['object_id']:
+                reached.setdefault(int(oid), {}).setdefault('code', now)
     arrivals: dict[str, list[float]] = {}     # when the probe received each report
     sent: dict[str, list[float]] = {}         # header stamps: when the node published it
     last: dict[str, dict[str, str]] = {}
@@ -372,6 +378,7 @@ def end_to_end(bag: Path, out: Path, rate: float) -> dict[str, Any]:
         probe.node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, on_diagnostics, 100)
         probe.node.create_subscription(MarkerArray, topics.TRACKS, on_tracks, topics.LATCHED_QOS)
         probe.node.create_subscription(PointCloud2, OBJECT_STATES, on_states, topics.LATCHED_QOS)
+        probe.node.create_subscription(PointCloud2, topics.OBJECT_CODES, on_codes, topics.LATCHED_QOS)
         result = run_bag(bag, out, rate=rate, output=log, progress=False, timeout=600)
     (out / 'run.log').write_text(log.getvalue())
     names = [n.name for n in NODES]

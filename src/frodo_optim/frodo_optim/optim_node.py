@@ -332,6 +332,14 @@ class OptimNode(FrodoNode):
         with self.cond:
             return self.stopping or self.queue.waiting_before('dense')
 
+    def _yield_sparse(self) -> bool:
+        """A sparse run stops between its runs (nothing kept, run again next) when the node stops or an object
+        without any estimate waits for its fused stage: its first mesh does not wait for another's sparse stage.
+        Objects that already have one do not interrupt it: boxes move with every frame while a bag plays, so
+        sparse stages would never end."""
+        with self.cond:
+            return self.stopping or any(oid not in self.reconstructor.estimates for oid in self.queue.queued('fused'))
+
     def _run(self, job: Job, track, codes, stamp_ns: int = 0) -> None:
         oid = job.object_id
         if track is None or codes is None or codes[1] < self.config.min_views:
@@ -358,12 +366,16 @@ class OptimNode(FrodoNode):
             others_waiting = bool(self.queue) and not job.forced
         step = self.reconstructor.run_stage(
             ObjectInput(oid, class_name, category, box, code, views, stamp_ns), job.stage, self.views, scene,
-            others_waiting=others_waiting, should_stop=self._yield_dense, on_stage=self._on_stage)
+            others_waiting=others_waiting, should_stop=self._yield_dense if job.stage == 'dense' else self._yield_sparse,
+            on_stage=self._on_stage)
         if step.error:
             raise RuntimeError(step.error)
         with self.cond:
             interrupted = step.outcome is not None and step.outcome.reason is StageReason.DENSE_INTERRUPTED
-            if step.deferred or (interrupted and not self.stopping):
+            if step.yielded and not self.stopping:
+                self.queue.request(oid, 'sparse')
+                self.count('sparse_yielded')
+            elif step.deferred or (interrupted and not self.stopping):
                 self.queue.defer(oid)
                 self.count('dense_deferred' if step.deferred else 'dense_yielded')
             elif step.next is not None:

@@ -28,7 +28,7 @@ from frodo_optim.config import OptimConfig
 from frodo_optim.core import ObjectEstimate, fused_estimate, world_box
 from frodo_optim.dense import DenseResult, DenseStop, refine_dense_starts
 from frodo_optim.photometric import ViewBatch
-from frodo_optim.sparse import SparseResult, refine, select_views
+from frodo_optim.sparse import SparseResult, SparseStatus, refine, select_views
 from frodo_optim.states import StageReason
 from frodo_optim.views import ViewMemory
 
@@ -90,13 +90,15 @@ class ObjectOutcome:
 @dataclass
 class StageStep:
     """What `ObjectReconstructor.run_stage` did: the stage's outcome (None: it did not run), the stage that may
-    follow (None: the object is done for now), why the object has no estimate (`error`), or that its dense
-    stage waits until no other object does (`deferred`)."""
+    follow (None: the object is done for now), why the object has no estimate (`error`), that its dense
+    stage waits until no other object does (`deferred`), or that its sparse stage stopped for waiting work
+    (`yielded`: nothing changed, run it again)."""
 
     outcome: StageOutcome | None
     next: str | None
     error: str = ''
     deferred: bool = False
+    yielded: bool = False
 
 
 class ObjectReconstructor:
@@ -154,7 +156,9 @@ class ObjectReconstructor:
         """One stage of one object, for a scheduler that interleaves objects (breadth first): 'fused' places the
         decoded mesh, 'sparse' refines from the fused placement, 'dense' from the object's last sparse result
         (kept from its sparse stage). `StageStep.next` says which stage may follow. A dense stage that is not
-        due (`dense_due`) while others wait does not run (`deferred`)."""
+        due (`dense_due`) while others wait does not run (`deferred`). should_stop: polled by the sparse stage
+        between its runs (it then ends `yielded`, nothing kept) and by the dense stage every iteration (it keeps
+        its best state so far)."""
         cfg = self.config
         oid = obj.object_id
         emit = on_stage or (lambda outcome: None)
@@ -185,7 +189,9 @@ class ObjectReconstructor:
         if stage != 'sparse':
             raise ValueError(f"unknown stage {stage!r}: 'fused', 'sparse' or 'dense'")
         floor = support.scene_floor(scene.tracks, scene.slam_points)
-        outcome, result = self._sparse(obj, fused, views, scene, floor, stamp)
+        outcome, result = self._sparse(obj, fused, views, scene, floor, stamp, should_stop)
+        if result is not None and result.status is SparseStatus.INTERRUPTED:
+            return StageStep(None, None, yielded=True)
         if result is not None:
             self.sparse_results[oid] = (outcome.estimate, result)
         emit(outcome)
@@ -210,8 +216,9 @@ class ObjectReconstructor:
         return estimate
 
     def _sparse(self, obj: ObjectInput, fused: ObjectEstimate, views: ViewMemory, scene: Scene, floor: float | None,
-                stamp: int) -> tuple[StageOutcome, SparseResult | None]:
-        """The sparse stage; on failure the fused result stays (replacing an older refinement), with the reason."""
+                stamp: int, should_stop: Callable[[], bool] | None = None) -> tuple[StageOutcome | None, SparseResult | None]:
+        """The sparse stage; on failure the fused result stays (replacing an older refinement), with the reason;
+        interrupted by should_stop: (None, the interrupted result), nothing changed."""
         cfg = self.config
         oid = obj.object_id
         photometric = None
@@ -222,7 +229,10 @@ class ObjectReconstructor:
         result = refine(self.prior, obj.code, obj.box, views.sparse_views(oid), scene.slam_points, cfg.sparse,
                         photometric=photometric, floor_height=floor,
                         height_range=support.class_height_range(fused.class_name), code_class=fused.class_name,
-                        neighbour_boxes=[b for other, (_, b) in scene.tracks.items() if other != oid])
+                        neighbour_boxes=[b for other, (_, b) in scene.tracks.items() if other != oid],
+                        should_stop=should_stop)
+        if result.status is SparseStatus.INTERRUPTED:
+            return None, result
         seconds = time.perf_counter() - t0
         mesh = self.prior.mesh(result.code, resolution=cfg.mesh_resolution) if result.ok else None
         if mesh is None or len(mesh.faces) == 0:

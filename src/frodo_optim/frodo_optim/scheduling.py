@@ -1,6 +1,8 @@
 """Breadth-first order of the optimiser's work (issue 28): every object gets its fused mesh before any object
-gets a sparse stage, every sparse stage comes before any dense stage, and among objects at the same stage the
-one seen first goes first, so what a robot saw first is refined first. Pure Python, no ROS.
+gets a sparse stage, every sparse stage comes before any dense stage, and among objects at the same stage an
+object's first run of it goes before re-runs (new input for an object refined already), then the one seen first
+goes first: what a robot saw first is refined first, and an object whose code changes with every frame does not
+keep the others from their first mesh. Pure Python, no ROS.
 
 A job is (object, stage). `request(oid)` (new input for the object: its box or code changed) starts its
 pipeline again from the fused stage; `advance(oid, stage)` queues the stage after one that ended; a dense
@@ -31,6 +33,7 @@ class StageQueue:
         self._queued: dict[int, str] = {}        # object -> next stage to run
         self._deferred: set[int] = set()         # objects whose dense stage waits for an empty queue
         self._first_seen: dict[int, int] = {}    # object -> order of its first request
+        self._completed: dict[int, set[str]] = {}  # object -> stages it has finished at least once
         self._seen = 0
 
     def _order(self, object_id: int) -> int:
@@ -50,6 +53,7 @@ class StageQueue:
     def advance(self, object_id: int, finished: str) -> None:
         """Queue the stage after `finished`, unless the object was re-requested meanwhile (its queued stage is then
         at or before this one) or `finished` was the last stage."""
+        self._completed.setdefault(object_id, set()).add(finished)
         following = RANK[finished] + 1
         if following < len(STAGES) and object_id not in self._queued:
             self._queued[object_id] = STAGES[following]
@@ -63,12 +67,16 @@ class StageQueue:
         """Forget the object's queued work (its track is gone)."""
         self._queued.pop(object_id, None)
         self._deferred.discard(object_id)
+        self._completed.pop(object_id, None)
 
     def pop(self) -> Job | None:
-        """The next job: the earliest stage first, then the object seen first; a deferred dense stage (forced) only
-        when nothing else is queued; None when there is no work."""
+        """The next job: the earliest stage first, then an object's first run of that stage before re-runs, then
+        the object seen first; a deferred dense stage (forced) only when nothing else is queued; None when there
+        is no work."""
         if self._queued:
-            object_id = min(self._queued, key=lambda oid: (RANK[self._queued[oid]], self._first_seen[oid]))
+            object_id = min(self._queued, key=lambda oid: (RANK[self._queued[oid]],
+                                                           self._queued[oid] in self._completed.get(oid, ()),
+                                                           self._first_seen[oid]))
             return Job(object_id, self._queued.pop(object_id))
         if self._deferred:
             object_id = min(self._deferred, key=self._first_seen.__getitem__)
@@ -87,6 +95,10 @@ class StageQueue:
             counts[stage] += 1
         counts['dense'] += len(self._deferred - set(self._queued))
         return counts
+
+    def queued(self, stage: str) -> list[int]:
+        """The objects whose next queued stage is `stage` (deferred dense stages not included)."""
+        return [oid for oid, s in self._queued.items() if s == stage]
 
     def objects(self) -> set[int]:
         """Every object with queued or deferred work."""

@@ -129,6 +129,7 @@ class SparseStatus(Enum):
     INVALID_INPUT = 'invalid input'      # non-finite code or box, or decoded points not finite
     NO_VIEWS = 'no usable views'
     NON_FINITE_ENERGY = 'non-finite energy'
+    INTERRUPTED = 'interrupted'          # should_stop() said so between its runs: nothing kept, run it again
 
 
 @dataclass
@@ -324,7 +325,7 @@ def code_statistics(training_codes) -> tuple[torch.Tensor, torch.Tensor]:
 def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None = None,
            config: SparseConfig | None = None, init_yaw: float | None = None, photometric=None,
            floor_height: float | None = None, height_range: tuple[float, float] | None = None,
-           code_class: str | None = None, neighbour_boxes=()) -> SparseResult:
+           code_class: str | None = None, neighbour_boxes=(), should_stop=None) -> SparseResult:
     """Yaw search + joint code/pose optimisation of one object (paper Sec. 5.3).
 
     prior: anything with `decode_points(codes) -> (N, 2048, 3)` torch (differentiable) and `training_codes`.
@@ -335,7 +336,9 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
     floor_height: world z of the floor (`support.floor_height`) for E_floor; height_range: the class's metric
     height range (`Category.height_range`) for E_size; None: term off. code_class: the object's class; code
     restarts (`code_restarts`) then draw only that class's training codes. neighbour_boxes: the other objects'
-    boxes (centre, size, yaw), for the landmark selection (`placement.on_silhouettes`).
+    boxes (centre, size, yaw), for the landmark selection (`placement.on_silhouettes`). should_stop: optional
+    callable polled between the stage's runs (a node that has cheaper work waiting): True ends the stage at once
+    with status INTERRUPTED and ok=False (nothing of it is kept; the caller runs it again later).
     Never raises on bad input: returns the box placement with ok=False and a reason.
     """
     cfg = config or SparseConfig()
@@ -472,8 +475,17 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
             done = it + 1
         return best, initial_terms, done
 
+    def interrupted() -> bool:
+        return should_stop is not None and bool(should_stop())
+
+    if interrupted():
+        return fallback(SparseStatus.INTERRUPTED, 'interrupted after the initial search')
     starts = [int(np.argmin(scores[:n_box]))] + ([n_box + int(np.argmin(scores[n_box:]))] if len(scores) > n_box else [])
-    runs = [(descend(*candidates[k][:3], z0, slam_input if k < n_box else slam_common), candidates[k]) for k in starts]
+    runs = []
+    for k in starts:
+        runs.append((descend(*candidates[k][:3], z0, slam_input if k < n_box else slam_common), candidates[k]))
+        if interrupted():
+            return fallback(SparseStatus.INTERRUPTED, f'interrupted after {len(runs)} of its runs')
     # ---- code restarts (beyond the paper): the encoder's code of an unseen design can be a different shape
     # than the silhouettes show, and Adam steps near it do not leave its basin. Every training code (of the
     # object's class when known) is scored with the exact energy at the input box (shape-specific box fit) with
@@ -505,6 +517,8 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
                     if best_restart is None or e < best_restart[0]:
                         t_i, s_i = box_init(decoded[i].numpy().astype(np.float64), center, size, float(y))
                         best_restart = (e, i, (float(y), t_i, s_i, f'training code {i}'))
+        if interrupted():
+            return fallback(SparseStatus.INTERRUPTED, 'interrupted before the code restart')
         if best_restart is not None and math.isfinite(best_restart[0]):
             runs.append((descend(*best_restart[2][:3], train[best_restart[1]], slam_common), best_restart[2]))
 

@@ -80,9 +80,27 @@ def test_a_dense_run_interrupted_at_shutdown_says_so(prior, two_chairs):
     K, frames, _, _ = two_chairs
     cfg = fast_config()
     rec = ObjectReconstructor(prior, cfg)
-    out = rec.reconstruct(chair_input(two_chairs), memory_of(frames, K, cfg), Scene(), should_stop=lambda: True)
+    done = []          # the stop comes once the sparse stage has ended
+    out = rec.reconstruct(chair_input(two_chairs), memory_of(frames, K, cfg), Scene(),
+                          should_stop=lambda: 'sparse' in done, on_stage=lambda stage: done.append(stage.stage))
     assert out.final.stage == 'dense' and out.final.reason is StageReason.DENSE_INTERRUPTED
     assert rec.estimates[1].stage == 'sparse' and rec.estimates[1].stage_reason == StageReason.DENSE_INTERRUPTED
+
+
+def test_a_sparse_run_asked_to_stop_yields_and_changes_nothing(prior, two_chairs):
+    """A sparse stage stopped between its runs (a node with a new object's first mesh waiting) ends `yielded`:
+    no outcome, no next stage, the fused estimate and no sparse result kept; run again, it completes."""
+    K, frames, _, _ = two_chairs
+    cfg = fast_config()
+    rec = ObjectReconstructor(prior, cfg)
+    views, obj = memory_of(frames, K, cfg), chair_input(two_chairs)
+    rec.run_stage(obj, 'fused', views, Scene())
+    fused = rec.estimates[1]
+    step = rec.run_stage(obj, 'sparse', views, Scene(), should_stop=lambda: True)
+    assert step.yielded and step.outcome is None and step.next is None
+    assert rec.estimates[1] is fused and 1 not in rec.sparse_results
+    step = rec.run_stage(obj, 'sparse', views, Scene(), should_stop=lambda: False)
+    assert not step.yielded and step.next == 'dense' and rec.estimates[1].stage == 'sparse'
 
 
 def test_a_sparse_result_without_surface_keeps_the_fused_estimate_as_failed(prior, two_chairs):

@@ -29,16 +29,44 @@ def test_new_input_restarts_an_object_and_a_new_object_goes_before_the_others_la
     queue.request(2)
     assert queue.pop() == Job(1, 'fused')
     queue.advance(1, 'fused')                       # 1: sparse next
-    queue.request(1)                                # its code changed meanwhile: from fused again
+    queue.request(1)                                # its code changed meanwhile: from fused again, but 2's first
+    assert queue.pop() == Job(2, 'fused')           # mesh goes before 1's re-run (1 was seen first)
+    queue.advance(2, 'fused')
     assert queue.pop() == Job(1, 'fused')
     queue.advance(1, 'fused')
     queue.request(9)                                # seen last, but its first mesh comes before 1's sparse stage
     assert queue.waiting_before('sparse') and queue.waiting_before('dense')
-    assert [queue.pop() for _ in range(2)] == [Job(2, 'fused'), Job(9, 'fused')]
+    assert queue.pop() == Job(9, 'fused')
     assert not queue.waiting_before('sparse') and queue.pop() == Job(1, 'sparse')
-    queue.request(1, 'sparse')                      # an earlier stage already queued stays
-    queue.request(2, 'dense')
-    assert queue.waiting() == {'fused': 0, 'sparse': 1, 'dense': 1}
+    queue.request(1, 'sparse')
+    queue.request(2, 'dense')                       # an earlier stage already queued (2's sparse) stays
+    queue.request(9, 'dense')
+    assert queue.waiting() == {'fused': 0, 'sparse': 2, 'dense': 1}
+    queue.request(5)
+    assert queue.queued('fused') == [5] and sorted(queue.queued('sparse')) == [1, 2] and queue.queued('dense') == [9]
+
+
+def test_an_object_whose_code_changes_every_frame_does_not_keep_others_from_their_first_mesh():
+    """While a bag plays, the first object's code changes with every frame: its fused stage is asked for again and
+    again. Objects seen after it still get their first fused stage next; the re-run follows, then the sparse
+    stages in the order the objects were seen."""
+    queue = StageQueue()
+    queue.request(0)
+    assert queue.pop() == Job(0, 'fused')
+    queue.advance(0, 'fused')
+    for new in (1, 2, 3):
+        queue.request(new)
+        queue.request(0)                            # new code for 0 with every frame
+        job = queue.pop()
+        assert job == Job(new, 'fused'), job
+        queue.advance(new, 'fused')
+    assert queue.pop() == Job(0, 'fused')           # its re-run after every first mesh
+    queue.advance(0, 'fused')
+    assert [queue.pop() for _ in range(4)] == [Job(oid, 'sparse') for oid in (0, 1, 2, 3)]
+    queue.advance(0, 'sparse')
+    queue.request(0, 'sparse')                      # 0's sparse asked for again before 1's first one ran
+    queue.request(1, 'sparse')
+    assert queue.pop() == Job(1, 'sparse')
 
 
 def test_a_deferred_dense_stage_waits_for_an_empty_queue_and_then_runs_forced():

@@ -91,6 +91,25 @@ def test_degenerate_input_falls_back_with_a_reason(prior, chair_scene):
     assert not res.ok and 'views' in res.reason
 
 
+def test_a_sparse_stage_asked_to_stop_ends_between_its_runs_and_keeps_nothing(prior, chair_scene):
+    """should_stop polled between the runs: True ends the stage at once (status INTERRUPTED, not ok); asked after
+    its first run, it stops after that one, and a stage never asked runs every run as before."""
+    from frodo_optim.sparse import SparseStatus
+    cfg = SparseConfig(iterations=3, code_restarts=1)
+    polls = []
+    res = refine(prior, chair_scene['code'], chair_scene['box'], chair_scene['views'], config=cfg,
+                 should_stop=lambda: polls.append(1) or True)
+    assert res.status is SparseStatus.INTERRUPTED and not res.ok and len(polls) == 1 and 'interrupted' in res.reason
+    polls.clear()
+    res = refine(prior, chair_scene['code'], chair_scene['box'], chair_scene['views'], config=cfg,
+                 should_stop=lambda: polls.append(1) or len(polls) > 1)
+    assert res.status is SparseStatus.INTERRUPTED and 'after 1 of its runs' in res.reason
+    full = refine(prior, chair_scene['code'], chair_scene['box'], chair_scene['views'], config=cfg,
+                  should_stop=lambda: False)
+    plain = refine(prior, chair_scene['code'], chair_scene['box'], chair_scene['views'], config=cfg)
+    assert full.ok and full.total_iterations == plain.total_iterations and np.array_equal(full.code, plain.code)
+
+
 def test_diverging_optimisation_falls_back_to_the_best_state(prior, chair_scene):
     cfg = SparseConfig(iterations=8, lr_translation=5.0, lr_yaw=3.0, lr_log_scale=2.0, lr_code=5.0)
     res = refine(prior, chair_scene['code'], chair_scene['box'], chair_scene['views'], config=cfg)
