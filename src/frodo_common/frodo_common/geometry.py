@@ -145,6 +145,11 @@ class Box3D:
         """(8, 3) world corners."""
         return box_corners(self.center, self.size, self.yaw)
 
+    def same_as(self, other: 'Box3D') -> bool:
+        """Exactly the same box (a re-sent one), not merely a close one."""
+        return bool(np.array_equal(self.center, other.center) and np.array_equal(self.size, other.size)
+                    and self.yaw == other.yaw)
+
 
 def box_iou_2d(a, b) -> float:
     """IoU of two axis-aligned 2D boxes (x0, y0, x1, y1)."""

@@ -48,3 +48,12 @@ def test_box_corners_and_iou():
     assert np.allclose(corners.min(0), [-0.5, -1, 0]) and np.allclose(corners.max(0), [0.5, 1, 1])
     assert g.box_iou_2d([0, 0, 2, 2], [1, 0, 3, 2]) == pytest.approx(1 / 3)
     assert g.box_iou_2d([0, 0, 1, 1], [2, 2, 3, 3]) == 0.0
+
+
+def test_a_box_is_the_same_only_as_an_identical_one():
+    Box3D = g.Box3D
+    box = Box3D([1.0, 2.0, 0.4], [0.5, 0.6, 0.8], 0.1)
+    assert box.same_as(Box3D(box.center.copy(), box.size.copy(), 0.1))
+    assert not box.same_as(Box3D(box.center + [1e-9, 0, 0], box.size, 0.1))
+    assert not box.same_as(Box3D(box.center, box.size, 0.1 + 1e-12))
+    assert not box.same_as(Box3D(box.center, box.size * 1.01, 0.1))

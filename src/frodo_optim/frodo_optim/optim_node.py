@@ -47,7 +47,6 @@ from frodo_common.node import ERROR, OK, WARN, FrodoNode, run_node
 from frodo_common.frame_cache import FrameCache
 from frodo_common.params import ParamSpec
 from frodo_common.frames import depth_to_metres
-from frodo_common.geometry import Box3D
 from frodo_optim.config import PARAMS as OPTIM_PARAMS, optim_config
 from frodo_optim.core import ObjectEstimate
 from frodo_optim.merge import TABLE_KIND, MapMerger, Retractions
@@ -73,10 +72,6 @@ PARAMS = OPTIM_PARAMS + (
 )
 
 CLASS_COLOURS = {c.name: (*c.colour, 1.0) for c in CATEGORIES}   # chair orange, dining table blue, ...
-
-
-def _same_box(a: Box3D, b: Box3D) -> bool:
-    return bool(np.array_equal(a.center, b.center) and np.array_equal(a.size, b.size) and a.yaw == b.yaw)
 
 
 class OptimNode(FrodoNode):
@@ -201,8 +196,8 @@ class OptimNode(FrodoNode):
                         previous = self.tracks.get(m.id)
                         self.tracks[m.id] = (m.ns, box)
                         self.input_stamps[m.id] = max(self.input_stamps.get(m.id, 0), stamp)
-                        # the association re-sends every track with each frame: only a changed one is new work
-                        if previous is None or previous[0] != m.ns or not _same_box(previous[1], box):
+                        # the association re-sends every track when one changes: only a changed one is new work
+                        if previous is None or previous[0] != m.ns or not previous[1].same_as(box):
                             self.queue.request(m.id)
                     else:
                         self.report_error('tracks', f'object {m.id}: invalid box {box}')
