@@ -12,7 +12,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from sensor_msgs.msg import Image
 
 from frodo_common import conversions as conv
@@ -35,13 +34,10 @@ class DetectionNode(FrodoNode):
         self._warned_encodings: set[str] = set()
         self._warned_categories: set[int] = set()
         self.pub = self.create_publisher(Image, topics.DETECTIONS, topics.FRAME_QOS)
-        # Own group: a slow Mask R-CNN call must not block the diagnostics timer.
-        group = MutuallyExclusiveCallbackGroup()
-        self.create_subscription(Image, p['image_topic'], self.guarded(self._on_image, 'image'), topics.FRAME_QOS,
-                                 callback_group=group)
+        self.create_subscription(Image, p['image_topic'], self.guarded(self._on_image, 'image'), topics.FRAME_QOS)
         if p['backend'] == 'external':
             self.create_subscription(Image, p['instances_topic'], self.guarded(self._on_instances, 'instances'),
-                                     topics.FRAME_QOS, callback_group=group)
+                                     topics.FRAME_QOS)
 
     # ------------------------------------------------------------ callbacks
     def _on_image(self, msg: Image) -> None:
@@ -121,8 +117,9 @@ class DetectionNode(FrodoNode):
 
 
 def main(args=None) -> int:
-    """Entry point of `detection_node`."""
-    return run_node(DetectionNode, args)
+    """Entry point of `detection_node` (one executor thread: Mask R-CNN runs in its callbacks, torch on one
+    thread; the diagnostics have a thread of their own)."""
+    return run_node(DetectionNode, args, threads=1)
 
 
 if __name__ == '__main__':

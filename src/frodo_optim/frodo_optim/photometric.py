@@ -53,18 +53,32 @@ class DenseView:
 def _resample(img: np.ndarray, x0: int, y0: int, side: int, size: int, mode: str) -> np.ndarray:
     """The square pixel window img[y0:y0+side, x0:x0+side] ((H, W) or (H, W, C)) resampled to (size, size[, C]).
 
-    Pixels outside the image read LABEL_UNKNOWN ('nearest', labels) or 0 ('area', colour).
+    Pixels outside the image read LABEL_UNKNOWN ('nearest', labels) or 0 ('area', colour). The same values as
+    torch's `interpolate` modes of those names, in numpy: views are cut in the optimiser node's executor
+    callbacks, and torch there would start an OpenMP team beside the optimiser's (`frodo_common.torch_threads`).
     """
     h, w = img.shape[:2]
     window = np.full((side, side) + img.shape[2:], LABEL_UNKNOWN if mode == 'nearest' else 0, dtype=img.dtype)
     sx0, sy0, sx1, sy1 = max(0, x0), max(0, y0), min(w, x0 + side), min(h, y0 + side)
     if sx1 > sx0 and sy1 > sy0:
         window[sy0 - y0:sy1 - y0, sx0 - x0:sx1 - x0] = img[sy0:sy1, sx0:sx1]
-    t = torch.from_numpy(np.ascontiguousarray(window)).float()
-    t = t[None, None] if t.ndim == 2 else t.permute(2, 0, 1)[None]
-    out = F.interpolate(t, size=(size, size), mode=mode)[0]
-    out = out[0] if img.ndim == 2 else out.permute(1, 2, 0)
-    return out.round().clamp(0, 255).numpy().astype(np.uint8)
+    if mode == 'nearest':
+        # torch: source index floor(i * (in / out)), computed in float32
+        scale = np.float32(side) / np.float32(size)
+        idx = np.minimum(np.floor(np.arange(size, dtype=np.float32) * scale).astype(np.int64), side - 1)
+        return window[idx][:, idx]
+    # 'area' is adaptive average pooling: output i averages inputs floor(i * in / out) .. ceil((i + 1) * in / out)
+    # (integer sums, exact; then divided by the window's height and width in float32, as torch does)
+    i = np.arange(size)
+    lo, hi = (i * side) // size, ((i + 1) * side + size - 1) // size
+    sums = window.astype(np.int64)
+    for axis in (0, 1):
+        cum = np.concatenate([np.zeros_like(sums.take([0], axis)), np.cumsum(sums, axis=axis)], axis=axis)
+        sums = cum.take(hi, axis) - cum.take(lo, axis)
+    n = (hi - lo).astype(np.float32)
+    n_rows, n_cols = (n[:, None, None], n[None, :, None]) if window.ndim == 3 else (n[:, None], n[None, :])
+    out = sums.astype(np.float32) / n_rows / n_cols
+    return np.clip(np.round(out), 0, 255).astype(np.uint8)
 
 
 def checked_view_inputs(K, T_world_camera, mask: np.ndarray):

@@ -381,3 +381,21 @@ def test_upright_dense_stage_only_turns_about_gravity(prior, scene):
         res = refine_dense(prior, code0, T0, scene['views'], config=cfg)
         tilt[upright] = float(np.degrees(np.arccos(np.clip(res.rotation[2, 2], -1.0, 1.0))))
     assert tilt[True] < 1e-3 and tilt[False] > 0.05, tilt
+
+
+@pytest.mark.parametrize('side', [5, 64, 127, 128, 129, 200, 291, 383, 640])
+def test_view_resampling_matches_torch_interpolate(side):
+    """The numpy crops of a view (labels 'nearest', colour 'area') hold torch interpolate's values exactly."""
+    from frodo_optim.photometric import _resample
+    rng = np.random.default_rng(side)
+    labels = rng.integers(0, 3, (side, side), dtype=np.uint8)
+    rgb = rng.integers(0, 256, (side, side, 3), dtype=np.uint8)
+
+    def torch_resample(img, mode):
+        t = torch.from_numpy(img).float()
+        t = t[None, None] if t.ndim == 2 else t.permute(2, 0, 1)[None]
+        out = torch.nn.functional.interpolate(t, size=(128, 128), mode=mode)[0]
+        out = out[0] if img.ndim == 2 else out.permute(1, 2, 0)
+        return out.round().clamp(0, 255).numpy().astype(np.uint8)
+    np.testing.assert_array_equal(_resample(labels, 0, 0, side, 128, 'nearest'), torch_resample(labels, 'nearest'))
+    np.testing.assert_array_equal(_resample(rgb, 0, 0, side, 128, 'area'), torch_resample(rgb, 'area'))
