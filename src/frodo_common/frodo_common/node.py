@@ -38,7 +38,6 @@ from frodo_common import topics
 from frodo_common.frame_cache import FrameCache
 from frodo_common.params import COMMON_PARAMS, ParamSpec
 from frodo_common.stop_signals import install_stop_handlers
-from frodo_common.torch_threads import call_in_passing_thread
 
 # Diagnostic levels as ints (the message field is a single byte).
 OK, WARN, ERROR = 0, 1, 2
@@ -285,9 +284,8 @@ def run_node(node_factory: Callable[[], Node], args: list[str] | None = None, th
     `node_process` imported the node's modules) means the node is not built at all. Once the node's own
     `on_shutdown` has run, the ROS teardown is bounded (`bound_teardown`).
 
-    The node is built in a thread that ends once it is built, so that the torch work of loading its models
-    leaves no OpenMP team behind (`frodo_common.torch_threads`). threads: the executor's threads; 1 runs every
-    callback in this thread, for nodes whose callbacks do the torch work (one team, not one per executor thread).
+    threads: the executor's threads; 1 runs every callback in this thread, for nodes whose callbacks do the torch
+    work (one OpenMP team, not one per executor thread: `frodo_common.torch_threads`).
     """
     stop = install_stop_handlers()   # node_process installed them before the imports; a stop then is kept
     if stop.is_set():
@@ -295,7 +293,7 @@ def run_node(node_factory: Callable[[], Node], args: list[str] | None = None, th
     rclpy.init(args=args if args is not None else sys.argv, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
-        node = call_in_passing_thread(node_factory, name='frodo-build-node')
+        node = node_factory()
         freeze_startup_objects()
         executor = MultiThreadedExecutor(num_threads=threads) if threads > 1 else SingleThreadedExecutor()
         executor.add_node(node)

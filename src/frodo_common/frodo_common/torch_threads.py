@@ -8,9 +8,10 @@ thread (a second team) ran the optimiser's stages 1.5x slower on a 2-core machin
 process with one team (the demo walk's first dense stage: 9.0 s against 5.8 s, measured by replaying its
 inputs; docs/experiments/frodo_optim_history.md, "One OpenMP team per process").
 
-So a node builds its models in a thread that ends when they are built (its team ends with it:
+So a node loads its models in a thread that ends when they are loaded (its team ends with it:
 `call_in_passing_thread`) and runs torch afterwards in one thread only: the optimiser's worker, or the
-executor's own thread where callbacks do the torch work (`run_node(..., threads=1)`).
+executor's own thread where callbacks do the torch work (`run_node(..., threads=1)`). The rest of a node's
+constructor stays in the main thread (signal handlers can only be set there).
 """
 from __future__ import annotations
 

@@ -19,6 +19,7 @@ from frodo_common import topics
 from frodo_common.categories import category_by_id
 from frodo_common.frame_cache import FrameCache
 from frodo_common.node import FrodoNode, run_node
+from frodo_common.torch_threads import call_in_passing_thread
 from frodo_detection.config import PARAMS, filter_config, make_detector
 from frodo_detection.core import MaskRCNNDetector, filter_instances
 
@@ -29,7 +30,7 @@ class DetectionNode(FrodoNode):
         super().__init__('detection_node', PARAMS, **kwargs)
         p = self.params
         self.filter_cfg = filter_config(p)
-        self.detector = detector if detector is not None else make_detector(p)
+        self.detector = detector if detector is not None else call_in_passing_thread(lambda: make_detector(p))
         self.cache = FrameCache(('image', 'instances'), int(p['match_window']))
         self._warned_encodings: set[str] = set()
         self._warned_categories: set[int] = set()

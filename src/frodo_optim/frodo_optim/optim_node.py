@@ -46,6 +46,7 @@ from frodo_common.categories import CATEGORIES
 from frodo_common.node import ERROR, OK, WARN, FrodoNode, run_node
 from frodo_common.frame_cache import FrameCache
 from frodo_common.params import ParamSpec
+from frodo_common.torch_threads import call_in_passing_thread
 from frodo_common.frames import depth_to_metres
 from frodo_optim.config import PARAMS as OPTIM_PARAMS, optim_config
 from frodo_optim.core import ObjectEstimate
@@ -84,8 +85,9 @@ class OptimNode(FrodoNode):
             raise ValueError(f'worker_index {self.worker_index} must be in 0..worker_count-1 '
                              f'(worker_count {self.worker_count})')
         self.config = optim_config({spec.name: self.params[spec.name] for spec in OPTIM_PARAMS})
-        self.reconstructor = ObjectReconstructor(ShapePrior.load(self.config.prior, device=self.config.device),
-                                                 self.config)
+        # loaded in a passing thread: its OpenMP team must not outlive it beside the worker's (torch_threads)
+        prior = call_in_passing_thread(lambda: ShapePrior.load(self.config.prior, device=self.config.device))
+        self.reconstructor = ObjectReconstructor(prior, self.config)
         self.tracks: dict[int, tuple[str, tuple]] = {}             # id -> (class, (centre, size, yaw))
         self.codes: dict[int, tuple[int, int, np.ndarray]] = {}     # id -> (category, views, code)
         self.mesh_markers: dict[int, tuple[ObjectEstimate, Marker]] = {}   # id -> (estimate, its mesh marker)

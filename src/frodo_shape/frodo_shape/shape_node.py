@@ -12,6 +12,7 @@ from frodo_common import conversions as conv
 from frodo_common import topics
 from frodo_common.frame_cache import FrameCache
 from frodo_common.node import FrodoNode, run_node
+from frodo_common.torch_threads import call_in_passing_thread
 from frodo_shape.encoding import PARAMS, CodeEncoder
 from frodo_shape.prior import ShapePrior
 from sensor_msgs.msg import Image, PointCloud2
@@ -22,7 +23,8 @@ class ShapeNode(FrodoNode):
 
     def __init__(self, **kwargs):
         super().__init__('shape_node', PARAMS, **kwargs)
-        self.encoder = CodeEncoder(ShapePrior.load(self.params['prior'], device=self.params['device']), self.params)
+        prior = call_in_passing_thread(lambda: ShapePrior.load(self.params['prior'], device=self.params['device']))
+        self.encoder = CodeEncoder(prior, self.params)
         self.store = self.encoder.store   # codes and their objects, bounded
         self.cache = FrameCache(['image', 'detections', 'associations'], self.params['frame_cache_size'])
         self.newest_stamp = 0   # newest frame stamp encoded (a re-send of an older frame does not move it back)
