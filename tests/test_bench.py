@@ -91,3 +91,12 @@ def test_stage_latencies_count_from_each_objects_first_track():
     reached = {1: {'code': 10.25, 'fused': 10.5, 'sparse': 14.0, 'dense': 30.0}, 2: {'fused': 13.25, 'sparse': 18.0}}
     assert bench.stage_latencies(confirmed, reached) == {'code': [0.25], 'fused': [0.5, 1.25], 'sparse': [4.0, 6.0],
                                                          'dense': [20.0]}
+
+
+def test_synthetic_room_section_times_frodo_reconstruct_and_reads_its_scores(tmp_path):
+    room = bench.synthetic_room(tmp_path, objects=1, frames=12, seed=5)
+    assert room['objects'] == room['ground_truth'] == 1 and room['frames'] == 12 and room['wall_s'] > 0
+    assert 0 <= room['found'] <= 1 and (tmp_path / 'reconstruct' / 'eval.json').exists()
+    doc = {'machine': bench.machine_info('cpu'), 'room': room}
+    assert f"frodo reconstruct {room['wall_s']} s wall" in bench.summary(doc)
+    assert '## Synthetic room of 1 objects' in bench.markdown_page(doc, 'figures')

@@ -17,6 +17,9 @@ Sections (each a function returning plain data; a section that cannot run says w
   and objects.json, the seconds from each object's confirmation (its first track) to its first fused, sparse
   and dense state, and the intervals between each node's `/diagnostics` reports (contract: at least
   1 Hz), from their publish stamps and, separately, their arrival at a probe.
+- `room`: a synthetic room of 20 objects and 300 frames (`frodo synth --objects 20 --frames 300 --seed 7777`,
+  the default walk) reconstructed offline by `frodo reconstruct` as a user runs it (its own process, start-up
+  included): wall seconds, objects found, false positives, CD and F1@5cm (`--quick`: 8 objects, 150 frames).
 - `soak` (not in the default set: minutes to an hour): `soak_frames` frames of the demo bag repeated with shifted
   stamps at `soak_rate` x real time through the whole graph; peak and growing memory per node, backlog, latency
   per frame, /diagnostics intervals (frodo_bringup.soak; OUT/soak/soak.json + soak.png).
@@ -467,6 +470,27 @@ def write_plots(doc: dict[str, Any], out: Path) -> list[str]:
     return written
 
 
+def synthetic_room(out: Path, objects: int, frames: int, seed: int = 7777) -> dict[str, Any]:
+    """`frodo synth` a room of `objects` objects over `frames` frames, then time `frodo reconstruct` of it (a
+    process of its own, as a user runs it) and read its scores (eval.json, CONTRACT.md protocol)."""
+    out.mkdir(parents=True, exist_ok=True)
+    bag = out / f'room{objects}.mcap'
+    cli = [sys.executable, '-m', 'frodo_bringup.cli']
+    subprocess.run(cli + ['synth', str(bag), '--objects', str(objects), '--frames', str(frames), '--seed', str(seed),
+                          '--quiet'], check=True, capture_output=True, text=True)
+    started = time.perf_counter()
+    done = subprocess.run(cli + ['reconstruct', str(bag), '--out', str(out / 'reconstruct'), '--no-recording'],
+                          capture_output=True, text=True)
+    wall = time.perf_counter() - started
+    if done.returncode != 0:
+        return {'error': f'frodo reconstruct exited {done.returncode}: {done.stdout[-400:]}{done.stderr[-400:]}'}
+    overall = json.loads((out / 'reconstruct' / 'eval.json').read_text())['overall']
+    return {'objects': objects, 'frames': frames, 'seed': seed, 'wall_s': round(wall, 1),
+            'found': overall['n_matched'], 'ground_truth': overall['n_gt'],
+            'false_positives': overall['false_positives'], 'cd_cm': round(overall['cd_cm'], 2),
+            'f1': round(overall['f1'], 1)}
+
+
 def run_all(out: Path, quick: bool, device: str, sections: list[str], log: Callable[[str], None],
             soak_frames: int = 10_000, soak_rate: float = 2.0, bag: str | os.PathLike = DEMO_BAG) -> dict[str, Any]:
     """Every requested section, each timed and isolated (an exception is recorded, the others still run);
@@ -483,6 +507,7 @@ def run_all(out: Path, quick: bool, device: str, sections: list[str], log: Calla
                                          1, device),
         'association': lambda: association_latency([2, 10] if quick else [1, 2, 5, 10, 20], 40 if quick else 200),
         'end_to_end': lambda: end_to_end(bag, out / 'demo_run', rate=1.0),
+        'room': lambda: synthetic_room(out / 'room', *((8, 150) if quick else (20, 300))),
         'soak': lambda: _soak(demo_bag(bag), out / 'soak', soak_frames, soak_rate, doc['machine'], log),
         'optim_workers': lambda: _optim_workers(demo_bag(bag), out / 'optim_workers', quick, log),
     }
@@ -515,7 +540,8 @@ def _optim_workers(bag: Path, out: Path, quick: bool, log: Callable[[str], None]
     return objects_per_minute(bag, out, workers=(1, 2), rate=1.0, quick=quick, log=log)
 
 
-SECTIONS = ('decoder', 'roofline', 'stages', 'bag_read', 'sparse', 'dense', 'association', 'end_to_end')   # default
+SECTIONS = ('decoder', 'roofline', 'stages', 'bag_read', 'sparse', 'dense', 'association', 'end_to_end',
+            'room')   # default
 ALL_SECTIONS = SECTIONS + ('soak', 'optim_workers')
 
 
@@ -561,6 +587,13 @@ def summary(doc: dict[str, Any]) -> str:
                      f"add_frame {r['association_ms']['mean']:.2f} ms, refine_boxes {r['box_refinement_ms']['mean']:.2f}"
                      f" ms, together {r['total_ms']['mean']:.2f} ms mean / {r['total_ms']['p95']:.2f} ms p95"
                      f" (CPU time {r['total_cpu_ms']['mean']:.2f} / {r['total_cpu_ms']['p95']:.2f} ms)")
+    room = doc.get('room', {})
+    if 'wall_s' in room:
+        lines.append(f"synthetic room, {room['objects']} objects / {room['frames']} frames: frodo reconstruct "
+                     f"{room['wall_s']} s wall, {room['found']}/{room['ground_truth']} found, "
+                     f"{room['false_positives']} FP, CD {room['cd_cm']} cm, F1@5cm {room['f1']}")
+    elif room:
+        lines.append(f"synthetic room: {room.get('error')}")
     e = doc.get('end_to_end', {})
     if 'wall_s' in e:
         lines.append(f"demo run: exit {e['exit_code']}, {e['objects']} objects, {e['wall_s']} s wall "
@@ -646,6 +679,13 @@ def markdown_page(doc: dict[str, Any], plots_dir: str) -> str:
         lines += [f"| {row['objects']} | {row['detections_per_frame']} | {row['total_ms']['mean']:.2f} | "
                   f"{row['total_ms']['p95']:.2f} | {row['total_cpu_ms']['mean']:.2f} |" for row in a['rows']]
         lines.append('')
+    room = doc.get('room', {})
+    if 'wall_s' in room:
+        lines += [f"## Synthetic room of {room['objects']} objects (`frodo reconstruct`, offline)", '',
+                  f"`frodo synth --objects {room['objects']} --frames {room['frames']} --seed {room['seed']}`: "
+                  f"{room['wall_s']} s wall for `frodo reconstruct` (start-up included); {room['found']} of "
+                  f"{room['ground_truth']} objects found, {room['false_positives']} false positives, CD "
+                  f"{room['cd_cm']} cm, F1@5cm {room['f1']}.", '']
     e = doc.get('end_to_end', {})
     if 'wall_s' in e:
         lines += ['## Live demo run (`frodo run`, real time)', '',
