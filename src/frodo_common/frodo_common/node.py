@@ -284,8 +284,7 @@ def run_node(node_factory: Callable[[], Node], args: list[str] | None = None, th
     `node_process` imported the node's modules) means the node is not built at all. Once the node's own
     `on_shutdown` has run, the ROS teardown is bounded (`bound_teardown`).
 
-    threads: the executor's threads; 1 runs every callback in this thread, for nodes whose callbacks do the torch
-    work (one OpenMP team, not one per executor thread: `frodo_common.torch_threads`).
+    threads: the executor's threads (1: every callback in this thread).
     """
     stop = install_stop_handlers()   # node_process installed them before the imports; a stop then is kept
     if stop.is_set():

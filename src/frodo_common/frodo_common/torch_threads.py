@@ -9,9 +9,11 @@ process with one team (the demo walk's first dense stage: 9.0 s against 5.8 s, m
 inputs; docs/experiments/frodo_optim_history.md, "One OpenMP team per process").
 
 So a node loads its models in a thread that ends when they are loaded (its team ends with it:
-`call_in_passing_thread`) and runs torch afterwards in one thread only: the optimiser's worker, or the
-executor's own thread where callbacks do the torch work (`run_node(..., threads=1)`). The rest of a node's
-constructor stays in the main thread (signal handlers can only be set there).
+`call_in_passing_thread`), and the optimiser node runs torch in its worker thread only (its frame callbacks cut
+view crops in numpy). The rest of a node's constructor stays in the main thread (signal handlers can only be
+set there). Nodes whose executor callbacks run torch (shape_node's encoder, detection_node's Mask R-CNN) keep
+two executor threads: shape_node with one delayed the codes of objects confirmed while frames kept coming by
+3-5 s in the live demo run (docs/experiments/frodo_optim_history.md).
 """
 from __future__ import annotations
 

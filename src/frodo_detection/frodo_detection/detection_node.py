@@ -118,9 +118,8 @@ class DetectionNode(FrodoNode):
 
 
 def main(args=None) -> int:
-    """Entry point of `detection_node` (one executor thread: Mask R-CNN runs in its callbacks, torch on one
-    thread; the diagnostics have a thread of their own)."""
-    return run_node(DetectionNode, args, threads=1)
+    """Entry point of `detection_node`."""
+    return run_node(DetectionNode, args)
 
 
 if __name__ == '__main__':

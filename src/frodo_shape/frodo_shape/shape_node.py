@@ -84,8 +84,8 @@ class ShapeNode(FrodoNode):
 
 
 def main(args=None) -> int:
-    """Entry point of `shape_node` (one executor thread: the encoder runs in its callbacks, torch on one thread)."""
-    return run_node(ShapeNode, args, threads=1)
+    """Entry point of `shape_node`."""
+    return run_node(ShapeNode, args)
 
 
 if __name__ == '__main__':
