@@ -48,6 +48,9 @@ def test_workers_get_unique_names_and_the_optimiser_parameters(tmp_path):
                      'optim_node_2']
     assert [is_optimiser(n) for n in names] == [False] * 3 + [True] * 3 and not is_optimiser('optim_node_x')
     assert optimiser_workers(NODES, 1) == NODES
+    # each of the 3 workers gets a third of the CPUs as torch threads (at least 1); the other nodes keep theirs
+    threads = str(max(1, len(os.sched_getaffinity(0)) // 3))
+    assert [dict(n.env).get('OMP_NUM_THREADS') for n in nodes] == [None] * 3 + [threads] * 3
     with pytest.raises(GraphError, match='at least 1'):
         optimiser_workers(NODES, 0)
     # A worker runs under another name: the optimiser's section of every file (later files win), then its own.

@@ -10,7 +10,7 @@ import importlib
 import os
 import re
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Iterable, Iterator, Sequence
 
@@ -26,7 +26,8 @@ class GraphNode:
     """One node of the graph: ROS node name, Python module (exposes `main()` and `PARAMS`), ROS package.
 
     params_key: the YAML section its parameters come from when that is not its name (optimiser workers
-    `optim_node_<k>` read `optim_node:`); parameters: (name, value) pairs set on top of every params file.
+    `optim_node_<k>` read `optim_node:`); parameters: (name, value) pairs set on top of every params file;
+    env: (name, value) environment variables of its process.
     """
 
     name: str
@@ -34,6 +35,7 @@ class GraphNode:
     package: str
     params_key: str = ''
     parameters: tuple[tuple[str, Any], ...] = ()
+    env: tuple[tuple[str, str], ...] = ()
 
 
 # The graph, in data-flow order. Node name == console script name == launch file executable.
@@ -60,18 +62,24 @@ def is_optimiser(name: str) -> bool:
 
 def optimiser_workers(nodes: Sequence[GraphNode], count: int) -> tuple[GraphNode, ...]:
     """`nodes` with the optimiser replaced by `count` workers `optim_node_0..count-1` splitting the objects by
-    id (parameters `worker_index`, `worker_count`; each reads the `optim_node` parameters); one keeps it."""
+    id (parameters `worker_index`, `worker_count`; each reads the `optim_node` parameters); one keeps it.
+
+    Each worker gets 1/count of the CPUs as torch threads (OMP_NUM_THREADS): with every worker on all of them,
+    their OpenMP teams spin against each other (2 workers on 2 CPUs: the demo walk took 284.8 s instead of
+    54.8 s with one; docs/experiments/frodo_optim_history.md, "One OpenMP team per process")."""
     if count < 1:
         raise GraphError(f'--optim-workers must be at least 1, got {count}')
     if count == 1:
         return tuple(nodes)
+    threads = str(max(1, len(os.sched_getaffinity(0)) // count))
     out: list[GraphNode] = []
     for node in nodes:
         if node.name != OPTIMISER:
             out.append(node)
             continue
         out += [GraphNode(f'{OPTIMISER}_{k}', node.module, node.package, params_key=OPTIMISER,
-                          parameters=node.parameters + (('worker_index', k), ('worker_count', count)))
+                          parameters=node.parameters + (('worker_index', k), ('worker_count', count)),
+                          env=node.env + (('OMP_NUM_THREADS', threads),))
                 for k in range(count)]
     return tuple(out)
 
@@ -79,8 +87,7 @@ def optimiser_workers(nodes: Sequence[GraphNode], count: int) -> tuple[GraphNode
 def with_optimiser_parameters(nodes: Sequence[GraphNode], **parameters: Any) -> tuple[GraphNode, ...]:
     """`nodes` with `parameters` (None values left out) set on the optimiser and its workers."""
     extra = tuple((k, v) for k, v in parameters.items() if v is not None)
-    return tuple(GraphNode(n.name, n.module, n.package, n.params_key, n.parameters + extra)
-                 if is_optimiser(n.name) and extra else n for n in nodes)
+    return tuple(replace(n, parameters=n.parameters + extra) if is_optimiser(n.name) and extra else n for n in nodes)
 
 
 def section_parameters(params_files: Iterable[str | os.PathLike], key: str) -> dict[str, Any]:

@@ -202,7 +202,8 @@ class Launcher:
 
     def _spawn(self, proc: _NodeProcess) -> None:
         proc.popen = subprocess.Popen(self._command(proc.node), stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                      stderr=subprocess.STDOUT, env=self._child_env(), start_new_session=True)
+                                      stderr=subprocess.STDOUT, env=self._child_env() | dict(proc.node.env),
+                                      start_new_session=True)
         proc.restart_at = None
         proc.stopped = False
         log_file = self.log_dir / f'{proc.node.name}.log' if self.log_dir is not None else None
