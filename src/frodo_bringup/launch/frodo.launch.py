@@ -44,8 +44,11 @@ def optimiser_nodes(context) -> list:
     section = {}
     for key in (executable, f'/{executable}'):
         section.update((document.get(key) or {}).get('ros__parameters') or {})
+    # 1/count of the CPUs as torch threads each, as graph.optimiser_workers: OpenMP teams spinning against each other
+    threads = str(max(1, len(os.sched_getaffinity(0)) // count))
     return [Node(package=package, executable=executable, name=f'{executable}_{k}', output='screen',
-                 emulate_tty=True, parameters=[params_file, {**section, 'worker_index': k, 'worker_count': count}])
+                 emulate_tty=True, parameters=[params_file, {**section, 'worker_index': k, 'worker_count': count}],
+                 additional_env={'OMP_NUM_THREADS': threads})
             for k in range(count)]
 
 
