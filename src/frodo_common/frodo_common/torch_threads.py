@@ -1,4 +1,4 @@
-"""Keep a process's torch (OpenMP) work on one long-lived thread.
+"""Keep a node process from holding more OpenMP teams (torch's helper threads) than it needs.
 
 Why: torch's CPU kernels run in OpenMP (libgomp) parallel regions, and every thread that enters one keeps a
 team of helper threads for as long as it lives. libgomp counts the helpers of all teams, and once there are
@@ -13,7 +13,7 @@ So a node loads its models in a thread that ends when they are loaded (its team 
 view crops in numpy). The rest of a node's constructor stays in the main thread (signal handlers can only be
 set there). Nodes whose executor callbacks run torch (shape_node's encoder, detection_node's Mask R-CNN) keep
 two executor threads: shape_node with one delayed the codes of objects confirmed while frames kept coming by
-3-5 s in the live demo run (docs/experiments/frodo_optim_history.md).
+2.8-5.4 s in the live demo run (docs/experiments/frodo_optim_history.md).
 """
 from __future__ import annotations
 
