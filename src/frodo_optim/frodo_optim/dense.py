@@ -100,6 +100,7 @@ class DenseConfig:
     optimise_code: bool = True
     min_improvement: float = 0.0       # relative drop of the check energy needed to accept the dense result
     band_points: int = 8192            # most grid points in the code vector-Jacobian product
+    vjp_tail: float = 1e-5             # ... less the smallest |dEs/dG| that sum to under this fraction of all
     grid_band: float = 0.25            # normalised: re-evaluate only the grid within this of the surface (0: all)
     screen_iterations: int = 0         # several starts: run each this long, continue only the best (0: all in full)
     seed: int = 0
@@ -302,6 +303,19 @@ def _read_volume(volume: torch.Tensor, x: torch.Tensor, far: float) -> torch.Ten
         f[keep] = F.grid_sample(volume, x[keep].reshape(1, -1, 1, 1, 3), mode='bilinear', padding_mode='border',
                                 align_corners=True).reshape(-1)
     return f
+
+
+def vjp_points(grad: torch.Tensor, values: torch.Tensor, near: float, most: int, tail: float) -> torch.Tensor:
+    """Indices of the grid points that enter the code's vector-Jacobian product dEs/dz = sum_i dEs/dG_i dG_i/dz:
+    those with a non-zero gradient `grad` and |SDF value| < near, largest |grad| first, at most `most`, less the
+    smallest ones whose |grad| sums to under `tail` of the total (on the demo walk 99.999 % of it sits in 45 % of
+    the points, so the product costs half as much for a relative change of the sum of at most `tail`; issue 28)."""
+    idx = torch.nonzero((grad != 0) & (values.abs() < near)).squeeze(1)
+    if not len(idx):
+        return idx
+    mass, order = torch.sort(grad[idx].abs().double(), descending=True)        # float64: float32 sums drift by ~1e-5
+    kept = int(torch.searchsorted(torch.cumsum(mass, 0), (1 - tail) * mass.sum())) + 1 if tail > 0 else len(idx)
+    return idx[order[:min(kept, len(idx), most)]]
 
 
 def surface_bounds(vertices: torch.Tensor, sharpness: float, cell: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -543,10 +557,8 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
         if cfg.optimise_code and volume.grad is not None:
             # dEs/dz = sum_grid dEs/dG * dG/dz: one vector-Jacobian product on the band with non-zero gradient
             gv = volume.grad[0, 0].permute(2, 1, 0).reshape(-1)                     # back to [i, j, k] order
-            band = (gv != 0) & (torch.as_tensor(grid, device=dev).reshape(-1).abs() < 3 * cell)
-            idx = torch.nonzero(band).squeeze(1)
-            if len(idx) > cfg.band_points:
-                idx = idx[torch.topk(gv[idx].abs(), cfg.band_points).indices]
+            idx = vjp_points(gv, torch.as_tensor(grid, device=dev).reshape(-1), 3 * cell, cfg.band_points,
+                             cfg.vjp_tail)
             if len(idx):
                 (sdf_fn(grid_xyz[idx], z) * gv[idx]).sum().backward()
         opt.step()

@@ -12,10 +12,10 @@ from frodo_common.geometry import look_at
 from frodo_datasets.render import Material, Renderer, RenderObject, intrinsics
 from frodo_optim.dense import (DenseConfig, Rays, dense_silhouette, implicit_surface_points, make_rays,
                                pyramid_levels, refine_dense, refine_dense_starts, sdf_distance, so3_exp,
-                               surface_bounds)
+                               surface_bounds, vjp_points)
 from frodo_optim.photometric import (LABEL_OBJECT, ViewBatch, dense_view_from_frame, photometric_energy, visible)
 from frodo_optim.sparse import pose_matrix
-from frodo_shape.meshing import marching_cubes, sdf_grid
+from frodo_shape.meshing import grid_points, marching_cubes, sdf_grid
 from frodo_shape.prior import ShapePrior
 
 W, H = 160, 120
@@ -191,6 +191,39 @@ def test_clipped_and_skipped_silhouette_equals_reading_every_sample(prior, scene
         grads.append(torch.cat([g.reshape(-1) for g in torch.autograd.grad(e, [vol, *pose])]))
     assert 0.05 < energies[1] < 5 and abs(energies[0] - energies[1]) < 1e-4 * energies[1]
     assert float(torch.linalg.norm(grads[0] - grads[1])) < 1e-3 * float(torch.linalg.norm(grads[1]))
+
+
+def test_code_gradient_from_the_heaviest_band_points_equals_the_whole_band(prior, scene):
+    """dEs/dz from the band points that hold all but 1e-5 of sum |dEs/dG| (issue 28) is the whole band's, from
+    far fewer points; with no tail dropped every point with a gradient near the surface is used."""
+    cfg = DenseConfig()
+    rays = make_rays(scene['views'], cfg, 1, torch.Generator().manual_seed(0))[0]
+    code = scene['other']
+    grid = sdf_grid(lambda p: prior.sdf_numpy(p, code), 32, coarse=2)
+    cell = 2 / 31
+    volume = torch.as_tensor(np.ascontiguousarray(grid.transpose(2, 1, 0)))[None, None].requires_grad_(True)
+    T = torch.as_tensor(pose_matrix(0.8, scene['T'][:3, 3] + [0.03, 0, 0], 0.52), dtype=torch.float32)
+    dense_silhouette(volume, T[:3, :3] / 0.52, T[:3, 3], torch.tensor(0.52), rays, cfg.ray_step, cfg.sharpness,
+                     cfg.mask_confidence).backward()
+    gv = volume.grad[0, 0].permute(2, 1, 0).reshape(-1)
+    values = torch.as_tensor(grid).reshape(-1)
+    xyz = torch.as_tensor(grid_points(32).reshape(-1, 3))
+
+    def code_gradient(idx):
+        z = torch.as_tensor(code).clone().requires_grad_(True)
+        return torch.autograd.grad((prior.decoder.sdf(z[None], xyz[idx][None])[0] * gv[idx]).sum(), z)[0]
+
+    whole = vjp_points(gv, values, 3 * cell, 10**6, 0.0)
+    assert len(whole) == int(((gv != 0) & (values.abs() < 3 * cell)).sum()) > 500
+    kept = vjp_points(gv, values, 3 * cell, 10**6, 1e-5)
+    assert len(kept) < 0.8 * len(whole)
+    mass = gv.double().abs()
+    dropped = mass[whole].sum() - mass[kept].sum()
+    assert 0 <= float(dropped) < 1e-5 * float(mass[whole].sum())
+    assert float(gv[kept].abs().min()) >= float(gv[whole[~torch.isin(whole, kept)]].abs().max())
+    g_whole, g_kept = code_gradient(whole), code_gradient(kept)
+    assert float(torch.linalg.norm(g_kept - g_whole)) < 1e-3 * float(torch.linalg.norm(g_whole))
+    assert len(vjp_points(gv, values, 3 * cell, 100, 1e-5)) == 100      # the bound on the count still holds
 
 
 def test_photometric_gradient_and_visibility(prior, scene):
