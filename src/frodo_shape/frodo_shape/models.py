@@ -6,7 +6,7 @@
 - `PointDecoder` Gs(z): PSGN-style fully connected decoder to 2048 surface points. The paper's branch is
   FC 512-1024-2048-2048x3 (~15 M parameters); `POINT_DECODER_VARIANTS` names smaller CPU variants.
 - `JointDecoder`: both branches on one 64-D code.
-- `ImageEncoder`: a ResNet-style CNN (torchvision `BasicBlock`s, reduced width) regressing a code from a
+- `ImageEncoder`: a ResNet-style CNN (`ResidualBlock`s, reduced width) regressing a code from a
   128x128 crop, optionally with the instance mask as a 4th channel (paper Sec. 5.2).
 
 All networks work in the normalised object frame (docs/ARCHITECTURE.md): z up, front +x, bounding-box
@@ -19,7 +19,6 @@ from typing import Sequence
 
 import torch
 from torch import nn
-from torchvision.models.resnet import BasicBlock
 
 # Hidden widths of the point branch (output layer 2048x3 follows). 'paper' is the supplement's branch.
 POINT_DECODER_VARIANTS: dict[str, tuple[int, ...]] = {
@@ -51,7 +50,7 @@ class DecoderConfig:
 
 @dataclass
 class EncoderConfig:
-    """Size of the image encoder: stage widths of four ResNet stages, `blocks` BasicBlocks per stage."""
+    """Size of the image encoder: stage widths of four ResNet stages, `blocks` `ResidualBlock`s per stage."""
 
     code_dim: int = 64
     widths: Sequence[int] = field(default_factory=lambda: (24, 48, 96, 192))
@@ -157,10 +156,30 @@ class JointDecoder(nn.Module):
         return self.point_net(codes)
 
 
+class ResidualBlock(nn.Module):
+    """The two-convolution residual block of ResNet-18/34 (He et al. 2016): 3x3 conv (stride) + BN + ReLU, 3x3 conv
+    + BN, plus the input (through `downsample` where the shape changes), ReLU. Its parameter names are those of
+    torchvision's `BasicBlock`, so encoders saved with either load into the other; defined here so that loading
+    the shape models does not import torchvision (about 1 s, with torch._dynamo, in every process that starts)."""
+
+    def __init__(self, in_channels: int, channels: int, stride: int = 1, downsample: nn.Module | None = None):
+        super().__init__()
+        self.conv1 = nn.Conv2d(in_channels, channels, 3, stride=stride, padding=1, bias=False)
+        self.bn1 = nn.BatchNorm2d(channels)
+        self.relu = nn.ReLU(inplace=True)
+        self.conv2 = nn.Conv2d(channels, channels, 3, padding=1, bias=False)
+        self.bn2 = nn.BatchNorm2d(channels)
+        self.downsample = downsample
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        out = self.bn2(self.conv2(self.relu(self.bn1(self.conv1(x)))))
+        return self.relu(out + (x if self.downsample is None else self.downsample(x)))
+
+
 class ImageEncoder(nn.Module):
     """ResNet-style encoder: images (B, in_channels, S, S) float, normalised -> codes (B, code_dim).
 
-    Input: RGB in [-1, 1] plus (in_channels = 4) the instance mask as ±1 (`train.encoder_input`). Stem conv7x7/2 + maxpool, four stages of `BasicBlock`s (strides 1, 2, 2, 2), global average pool, FC.
+    Input: RGB in [-1, 1] plus (in_channels = 4) the instance mask as ±1 (`train.encoder_input`). Stem conv7x7/2 + maxpool, four stages of `ResidualBlock`s (strides 1, 2, 2, 2), global average pool, FC.
     """
 
     def __init__(self, config: EncoderConfig | None = None):
@@ -181,7 +200,7 @@ class ImageEncoder(nn.Module):
                 down = None
                 if s != 1 or in_ch != w:
                     down = nn.Sequential(nn.Conv2d(in_ch, w, 1, stride=s, bias=False), nn.BatchNorm2d(w))
-                blocks.append(BasicBlock(in_ch, w, stride=s, downsample=down))
+                blocks.append(ResidualBlock(in_ch, w, stride=s, downsample=down))
                 in_ch = w
             stages.append(nn.Sequential(*blocks))
         self.stages = nn.Sequential(*stages)

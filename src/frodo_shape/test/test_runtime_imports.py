@@ -27,3 +27,11 @@ def test_a_robot_build_of_the_runtime_nodes_does_not_pull_frodo_datasets():
         declared = {e.text for e in root if e.tag.endswith('depend')}
         assert 'frodo_datasets' not in declared, package
         assert 'frodo_datasets' not in meta.get(package, {}).get('dependencies', []), package
+
+
+def test_the_offline_pipeline_and_the_optimiser_do_not_import_torchvision():
+    """torchvision (with torch._dynamo, ~1 s) is needed only by the Mask R-CNN backend, imported when it is built."""
+    code = ('import sys, frodo_bringup.pipeline, frodo_optim.optim_node, frodo_shape.shape_node; '
+            'print(sorted(m for m in sys.modules if m.startswith("torchvision")))')
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.strip() == '[]', out.stdout

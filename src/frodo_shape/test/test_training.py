@@ -12,7 +12,7 @@ import trimesh
 import yaml
 
 from frodo_shape import cli_train
-from frodo_shape.models import DecoderConfig, EncoderConfig, ImageEncoder, JointDecoder
+from frodo_shape.models import DecoderConfig, EncoderConfig, ImageEncoder, JointDecoder, ResidualBlock
 from frodo_shape.prior import ShapePrior
 from frodo_shape.train import (RenderSet, TrainingShape, chamfer, design_shapes, encoder_input, train_decoder,
                                train_encoder)
@@ -106,6 +106,31 @@ def test_tiny_encoder_training_reduces_huber_loss(tmp_path, monkeypatch):
     meta = yaml.safe_load((out / 'config.yaml').read_text())
     assert meta['encoder']['input_size'] == 64 and 'decoder' in meta
     assert meta['encoder_training']['train']['steps'] == 70 and TINY_ENCODER['train']['steps'] != 70  # as run
+
+
+def test_residual_block_computes_torchvision_basic_block_with_the_same_parameters():
+    """The encoder's own block has torchvision BasicBlock's parameter names and output (both modes of BN)."""
+    from torchvision.models.resnet import BasicBlock
+    torch.manual_seed(0)
+    down = torch.nn.Sequential(torch.nn.Conv2d(8, 16, 1, stride=2, bias=False), torch.nn.BatchNorm2d(16))
+    ours = ResidualBlock(8, 16, stride=2, downsample=down)
+    theirs = BasicBlock(8, 16, stride=2, downsample=torch.nn.Sequential(
+        torch.nn.Conv2d(8, 16, 1, stride=2, bias=False), torch.nn.BatchNorm2d(16)))
+    with torch.no_grad():                                  # non-trivial BN statistics and affine parameters
+        for module in ours.modules():
+            if isinstance(module, torch.nn.BatchNorm2d):
+                module.running_mean.uniform_(-0.5, 0.5)
+                module.running_var.uniform_(0.5, 2.0)
+                module.weight.uniform_(0.5, 1.5)
+                module.bias.uniform_(-0.2, 0.2)
+    assert list(ours.state_dict()) == list(theirs.state_dict())
+    theirs.load_state_dict(ours.state_dict())
+    x = torch.randn(2, 8, 12, 12)
+    for train in (False, True):
+        ours.train(train), theirs.train(train)
+        assert torch.allclose(ours(x), theirs(x), atol=1e-6)
+    same = ResidualBlock(16, 16)
+    assert same(torch.randn(1, 16, 6, 6)).shape == (1, 16, 6, 6)
 
 
 def test_encoder_input_scaling():
