@@ -1,6 +1,8 @@
 """Publishing from geometry (issue 27): implausible landmark depths are dropped, cut detections count as evidence,
 an object still in view waits for confirm_window frames unless the input ended (`settle`), a detection in one
 keyframe is never published, and a partial view's cluster lying inside another object's box is merged into it."""
+from dataclasses import replace
+
 import numpy as np
 
 from frodo_association.config import AssociationConfig
@@ -106,6 +108,14 @@ def test_a_published_object_whose_box_no_detection_overlaps_keeps_its_largest_vi
         kept = a.rows.kept[rows]
         assert kept.sum() == AssociationConfig().min_track_views
         assert area[kept].min() >= area[~kept].max()
+    # Where no detection passes the size and overlap tests (every view of a table overlaps the chairs in front of
+    # it: realwalk-tune 8401), the ones that best match the box are kept all the same.
+    a.cfg = replace(a.cfg, min_box_width=10_000)
+    a.rows.kept[rows] = False
+    a._prune_frames(sorted(every))
+    assert not a.rows.kept[rows].any()
+    assert a._keep_best_views(every)
+    assert a.rows.kept[rows].sum() == AssociationConfig().min_track_views
 
 
 def test_the_merges_run_again_after_the_final_box_fits():
