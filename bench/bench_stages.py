@@ -1,0 +1,111 @@
+"""Where each object's error comes from: the offline pipeline's association box and every optimiser stage
+(fused, sparse, dense) scored against the bag's ground truth, per object.
+
+    .venv/bin/python bench/bench_stages.py BAG.mcap [BAG.mcap ...] [--params FILE] [--json OUT]
+
+Each bag is reconstructed as `frodo reconstruct` does (`frodo_bringup.pipeline.reconstruct`, deterministic),
+with the estimate of every stage kept as it ends. The final map is matched to the ground truth with the
+contract's protocol (`frodo_common.evaluation`); for each matched object the table gives the horizontal
+distance (cm) between the centre of the ground-truth mesh's bounding box and the association box's centre
+("assoc", with its vertical offset "dz") and each stage mesh's bounding-box centre ("c"), and each stage's
+F1@5cm and COMP@5cm against that ground-truth object alone. The bag line counts the ground-truth objects
+found, false positives and the classes missed. The last lines pool every bag: per class and stage the mean
+F1, mean COMP and the median centre error. Used for issue 27 (docs/experiments/frodo_association_history.md,
+"Starved views, and where realwalk-tune loses its objects").
+"""
+from __future__ import annotations
+
+from frodo_common.host import reproducible_math
+
+reproducible_math()      # before torch: the same bag gives the same figures
+
+import argparse                                               # noqa: E402
+import json                                                   # noqa: E402
+import time                                                   # noqa: E402
+from pathlib import Path                                      # noqa: E402
+
+import numpy as np                                            # noqa: E402
+
+from frodo_bringup.pipeline import PipelineConfig, reconstruct   # noqa: E402
+from frodo_common.evaluation import EvalObject, evaluate, load_ground_truth   # noqa: E402
+
+STAGES = ('fused', 'sparse', 'dense')
+
+
+def score_bag(bag: str, config: PipelineConfig | None) -> tuple[list[dict], str]:
+    """(one row per matched object, the bag's summary line)."""
+    gt = load_ground_truth(bag)
+    meshes: dict[int, dict[str, object]] = {}
+
+    def keep(stage) -> None:
+        if stage.estimate is not None:
+            meshes.setdefault(stage.object_id, {})[stage.stage] = stage.estimate.mesh_world.copy()
+
+    t0 = time.perf_counter()
+    result = reconstruct(bag, config, on_stage=keep)
+    seconds = time.perf_counter() - t0
+    final = [EvalObject(oid, e.class_name, e.mesh_world) for oid, e in result.estimates.items()]
+    report = evaluate(final, gt)
+    truth = {g.id: g for g in gt}
+    rows = []
+    for pair in report.pairs:
+        g = truth[pair.gt_id]
+        centre = g.mesh.bounds.mean(0)
+        box = result.tracks[pair.pred_id][1]
+        row = {'bag': Path(bag).stem, 'object': pair.pred_id, 'class': pair.class_name,
+               'assoc_cm': 100 * float(np.linalg.norm(box.center[:2] - centre[:2])),
+               'assoc_dz_cm': 100 * float(box.center[2] - centre[2])}
+        for stage, mesh in meshes.get(pair.pred_id, {}).items():
+            scored = evaluate([EvalObject(pair.pred_id, pair.class_name, mesh)], [g]).pairs
+            row[stage] = {'centre_cm': 100 * float(np.linalg.norm(mesh.bounds.mean(0)[:2] - centre[:2])),
+                          'f1': scored[0].f1 if scored else 0.0, 'comp': scored[0].comp if scored else 0.0}
+        rows.append(row)
+    missed = [truth[i].class_name for i in report.unmatched_gt]
+    line = (f'{Path(bag).name}: {len(report.pairs)}/{len(gt)} found, {len(report.unmatched_pred)} FP, '
+            f'F1 {report.overall.f1:.1f}, missed {missed}, {seconds:.0f} s')
+    return rows, line
+
+
+def object_line(row: dict) -> str:
+    def stage(name: str) -> str:
+        s = row.get(name)
+        return f'{name} -' if s is None else f"{name} c {s['centre_cm']:5.1f} F1 {s['f1']:5.1f} COMP {s['comp']:5.1f}"
+    return (f"  {row['object']:3d} {row['class'][:12]:12s} assoc {row['assoc_cm']:5.1f} dz {row['assoc_dz_cm']:5.1f} | "
+            + ' | '.join(stage(s) for s in STAGES))
+
+
+def pooled_lines(rows: list[dict]) -> list[str]:
+    lines = []
+    for cls in sorted({r['class'] for r in rows}):
+        of_class = [r for r in rows if r['class'] == cls]
+        for name in STAGES:
+            got = [r[name] for r in of_class if name in r]
+            if got:
+                lines.append(f'{cls:12s} {name:6s} n {len(got):3d}  F1 {np.mean([g["f1"] for g in got]):5.1f}  '
+                             f'COMP {np.mean([g["comp"] for g in got]):5.1f}  '
+                             f'median centre {np.median([g["centre_cm"] for g in got]):5.1f} cm')
+    return lines
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('bags', nargs='+')
+    parser.add_argument('--params', action='append', default=[], help='parameter YAML (repeatable)')
+    parser.add_argument('--json', help='write the per-object rows here')
+    args = parser.parse_args(argv)
+    config = PipelineConfig.from_params_files(args.params) if args.params else None
+    rows: list[dict] = []
+    for bag in args.bags:
+        bag_rows, line = score_bag(bag, config)
+        print(line, flush=True)
+        for row in bag_rows:
+            print(object_line(row), flush=True)
+        rows += bag_rows
+    print('\n'.join(pooled_lines(rows)))
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1) + '\n')
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
