@@ -909,13 +909,13 @@ class Associator:
     def _keep_best_views(self, frame_indices: set[int]) -> set[int]:
         """Pruning never starves a published object (own extension): one with a box and detections in the given
         frames but fewer than min_track_views kept ones keeps its min_track_views detections whose boxes best
-        match its projected 3D box clipped to the image, those passing the size and overlap tests first; where
-        fewer than that overlap the box at all (a box placed far off along the view), the largest fill up, and
-        where fewer pass those tests, the best of the others do. The occlusion test fails every view of an object
-        cut by the border in all of them (a table never seen whole) and every view of one whose box is off (a
-        stool under a chair-sized box prior); the overlap test every view of a table with chairs in front of it
-        (realwalk-tune 8401); without kept views the shape stage never encodes it and it is never reconstructed.
-        Returns the frames whose flags changed."""
+        match its projected 3D box clipped to the image, among those passing the size and overlap tests; where
+        fewer than that overlap the box at all (a box placed far off along the view), the largest passing ones
+        fill up; where none passes those tests, the best of all are kept. The occlusion test fails every view of
+        an object cut by the border in all of them (a table never seen whole) and every view of one whose box is
+        off (a stool under a chair-sized box prior); the overlap test every view of a table with chairs in front
+        of it (realwalk-tune 8401); without kept views the shape stage never encodes it and it is never
+        reconstructed. Returns the frames whose flags changed."""
         cfg = self.cfg
         if not cfg.prune or not frame_indices:
             return set()
@@ -945,7 +945,8 @@ class Associator:
             iou = np.where(valid[:, own],
                            box_iou(self.rows.box[rows], clip_boxes(proj[:, own][:, None], sizes)[:, 0]), 0.0)
             order = np.lexsort((-box_area(self.rows.box[rows]), -iou, ~passing))[:cfg.min_track_views]
-            best = rows[order][~self.rows.kept[rows[order]]]
+            eligible = passing[order] if passing.any() else np.ones(len(order), bool)
+            best = rows[order][eligible & ~self.rows.kept[rows[order]]]
             self.rows.kept[best] = True
             changed |= set(self.rows.frame[best].tolist())
         return changed
