@@ -53,6 +53,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from frodo_optim.adam import Adam
 from frodo_optim import support
 from frodo_optim.photometric import LABEL_OBJECT, LABEL_UNKNOWN, DenseView, ViewBatch, photometric_energy
 from frodo_optim.sparse import code_statistics, select_views, slam_points_near
@@ -474,7 +475,7 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
               {'params': [log_s], 'lr': cfg.lr_log_scale}]
     if cfg.optimise_code:
         groups.append({'params': [z], 'lr': cfg.lr_code})
-    opt = torch.optim.Adam(groups)
+    opt = Adam(groups)
     best, initial, done, reason_stop, stop, history = None, None, 0, '', DenseStop.COMPLETED, []
     iters = max(0, int(cfg.iterations))
     loop_start = time.perf_counter()

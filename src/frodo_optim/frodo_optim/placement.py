@@ -48,6 +48,7 @@ import torch
 import torch.nn.functional as F
 
 from frodo_common.geometry import Box3D, yaw_matrix
+from frodo_optim.adam import Adam
 from frodo_optim import support
 
 DEPTH_OFFSETS = (-0.3, -0.15, 0.15, 0.3)     # metres along the mean viewing direction through the ray centre
@@ -297,7 +298,7 @@ def search(points_norm: np.ndarray, box, views, batch, slam_points: np.ndarray |
     centre = centres_t[c_idx[picked_t]].clone().requires_grad_(True)
     log_s = grid_log_s[picked_t].clone().requires_grad_(True)
     yaw_idx = y_idx[picked_t]
-    opt = torch.optim.Adam([{'params': [centre], 'lr': 0.02}, {'params': [log_s], 'lr': 0.03}])
+    opt = Adam([{'params': [centre], 'lr': 0.02}, {'params': [log_s], 'lr': 0.03}])
     for _ in range(steps):
         opt.zero_grad(set_to_none=True)
         score(centre, log_s, yaw_idx).sum().backward()

@@ -55,6 +55,7 @@ import torch.nn.functional as F
 from scipy.ndimage import distance_transform_edt
 
 from frodo_common.geometry import Box3D
+from frodo_optim.adam import Adam
 from frodo_optim.photometric import checked_view_inputs, photometric_energy
 
 from frodo_optim import placement, support
@@ -453,7 +454,7 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
                   {'params': [log_s], 'lr': cfg.lr_log_scale}]
         if cfg.optimise_code:
             groups.append({'params': [z], 'lr': cfg.lr_code})
-        opt = torch.optim.Adam(groups)
+        opt = Adam(groups)
         best = None
         initial_terms = None
         done = 0
