@@ -25,7 +25,7 @@ class Adam:
         self.steps: dict[int, int] = {}
         self.moments: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
 
-    def zero_grad(self, set_to_none: bool = True) -> None:
+    def zero_grad(self) -> None:
         for params, _ in self.groups:
             for p in params:
                 p.grad = None

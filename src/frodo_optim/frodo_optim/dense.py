@@ -553,7 +553,7 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
         if should_stop is not None and should_stop():
             reason_stop, stop = f'interrupted after {it} iterations', DenseStop.INTERRUPTED
             break
-        opt.zero_grad(set_to_none=True)
+        opt.zero_grad()
         total.backward()
         if cfg.optimise_code and volume.grad is not None:
             # dEs/dz = sum_grid dEs/dG * dG/dz: one vector-Jacobian product on the band with non-zero gradient

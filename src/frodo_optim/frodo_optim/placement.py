@@ -300,7 +300,7 @@ def search(points_norm: np.ndarray, box, views, batch, slam_points: np.ndarray |
     yaw_idx = y_idx[picked_t]
     opt = Adam([{'params': [centre], 'lr': 0.02}, {'params': [log_s], 'lr': 0.03}])
     for _ in range(steps):
-        opt.zero_grad(set_to_none=True)
+        opt.zero_grad()
         score(centre, log_s, yaw_idx).sum().backward()
         opt.step()
     with torch.no_grad():

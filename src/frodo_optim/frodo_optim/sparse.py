@@ -470,7 +470,7 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
                         float(log_s.detach()), {k: float(v.detach()) for k, v in terms.items()} | {"total": float(total.detach())})
             if it == int(cfg.iterations):
                 break
-            opt.zero_grad(set_to_none=True)
+            opt.zero_grad()
             total.backward()
             opt.step()
             done = it + 1

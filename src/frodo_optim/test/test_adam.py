@@ -17,7 +17,7 @@ def _run(make_optimiser, steps: int = 60) -> list[torch.Tensor]:
     opt = make_optimiser([{'params': [a], 'lr': 0.02}, {'params': [b, unused], 'lr': 0.005},
                           {'params': [c], 'lr': 0.01}])
     for _ in range(steps):
-        opt.zero_grad(set_to_none=True)
+        opt.zero_grad()
         loss = ((a - target) ** 2).sum() + (b.sin() * c).sum() + torch.exp(c) + (a[:3] * b).sum()
         loss.backward()
         opt.step()
