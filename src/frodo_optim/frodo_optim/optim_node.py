@@ -330,7 +330,7 @@ class OptimNode(FrodoNode):
             return self.stopping or self.queue.waiting_before('dense')
 
     def _yield_sparse(self) -> bool:
-        """A sparse run stops between its runs (nothing kept, run again next) when the node stops or an object
+        """A sparse run stops at its next iteration (nothing kept, run again next) when the node stops or an object
         without any estimate waits for its fused stage: its first mesh does not wait for another's sparse stage.
         Objects that already have one do not interrupt it: boxes move with every frame while a bag plays, so
         sparse stages would never end."""

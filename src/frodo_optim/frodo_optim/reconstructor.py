@@ -157,7 +157,7 @@ class ObjectReconstructor:
         decoded mesh, 'sparse' refines from the fused placement, 'dense' from the object's last sparse result
         (kept from its sparse stage). `StageStep.next` says which stage may follow. A dense stage that is not
         due (`dense_due`) while others wait does not run (`deferred`). should_stop: polled by the sparse stage
-        between its runs (it then ends `yielded`, nothing kept) and by the dense stage every iteration (it keeps
+        every iteration of its runs (it then ends `yielded`, nothing kept) and by the dense stage every iteration (it keeps
         its best state so far)."""
         cfg = self.config
         oid = obj.object_id

@@ -62,6 +62,7 @@ from frodo_optim import placement, support
 
 DT_SIZE = 64          # cells per side of a view's distance-transform crop
 DT_MARGIN = 0.6       # the crop extends this fraction of the box size beyond each side of the detection box
+STOP_POLL = 16        # code-restart scoring polls should_stop every this many codes (~20 ms on a 2-core CPU)
 
 
 @dataclass
@@ -130,7 +131,7 @@ class SparseStatus(Enum):
     INVALID_INPUT = 'invalid input'      # non-finite code or box, or decoded points not finite
     NO_VIEWS = 'no usable views'
     NON_FINITE_ENERGY = 'non-finite energy'
-    INTERRUPTED = 'interrupted'          # should_stop() said so between its runs: nothing kept, run it again
+    INTERRUPTED = 'interrupted'          # should_stop() said so (polled every iteration): nothing kept, run it again
 
 
 @dataclass
@@ -338,8 +339,9 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
     height range (`Category.height_range`) for E_size; None: term off. code_class: the object's class; code
     restarts (`code_restarts`) then draw only that class's training codes. neighbour_boxes: the other objects'
     boxes (centre, size, yaw), for the landmark selection (`placement.on_silhouettes`). should_stop: optional
-    callable polled between the stage's runs (a node that has cheaper work waiting): True ends the stage at once
-    with status INTERRUPTED and ok=False (nothing of it is kept; the caller runs it again later).
+    callable polled after the initial search, every iteration of the stage's runs and every `STOP_POLL` codes of
+    the code-restart scoring (a node that has cheaper work waiting): True ends the stage at once with status
+    INTERRUPTED and ok=False (nothing of it is kept; the caller runs it again later).
     Never raises on bad input: returns the box placement with ok=False and a reason.
     """
     cfg = config or SparseConfig()
@@ -443,9 +445,13 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
     first_input = int(np.argmin(scores[:4]))
     input_energy = scores[first_input]
 
+    def interrupted() -> bool:
+        return should_stop is not None and bool(should_stop())
+
     # ---- joint optimisation of code, yaw, translation, log-scale (Adam, fixed iterations) from the best box start
     # (the box-only initialisation), from the best placement hypothesis and from the best code restart, if any
     def descend(yaw0: float, t0, s0: float, z_start: torch.Tensor, landmarks):
+        """(best state, initial terms, iterations done), or None when should_stop said so."""
         z = z_start.clone().requires_grad_(cfg.optimise_code)
         yaw = torch.tensor(yaw0, requires_grad=True)
         t = torch.as_tensor(t0, dtype=torch.float32).clone().requires_grad_(True)
@@ -459,6 +465,8 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
         initial_terms = None
         done = 0
         for it in range(int(cfg.iterations) + 1):
+            if interrupted():
+                return None
             pts = prior.decode_points(z.to(device)).float().cpu()[0] if cfg.optimise_code else pts0
             total, terms = energy(pts, z, yaw, t, log_s, landmarks)
             if initial_terms is None:
@@ -476,17 +484,13 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
             done = it + 1
         return best, initial_terms, done
 
-    def interrupted() -> bool:
-        return should_stop is not None and bool(should_stop())
-
-    if interrupted():
-        return fallback(SparseStatus.INTERRUPTED, 'interrupted after the initial search')
     starts = [int(np.argmin(scores[:n_box]))] + ([n_box + int(np.argmin(scores[n_box:]))] if len(scores) > n_box else [])
     runs = []
     for k in starts:
-        runs.append((descend(*candidates[k][:3], z0, slam_input if k < n_box else slam_common), candidates[k]))
-        if interrupted():
-            return fallback(SparseStatus.INTERRUPTED, f'interrupted after {len(runs)} of its runs')
+        run = descend(*candidates[k][:3], z0, slam_input if k < n_box else slam_common)
+        if run is None:
+            return fallback(SparseStatus.INTERRUPTED, f'interrupted in run {len(runs) + 1}')
+        runs.append((run, candidates[k]))
     # ---- code restarts (beyond the paper): the encoder's code of an unseen design can be a different shape
     # than the silhouettes show, and Adam steps near it do not leave its basin. Every training code (of the
     # object's class when known) is scored with the exact energy at the input box (shape-specific box fit) with
@@ -509,8 +513,12 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
             for chunk in np.array_split(np.array(pool), max(1, len(pool) // 32)):
                 pts_c = prior.decode_points(train[chunk].to(device)).float().cpu()
                 decoded.update({int(i): p for i, p in zip(chunk, pts_c) if torch.isfinite(p).all()})
-            coarse = sorted((min(code_energy(i, p, yaw_box), code_energy(i, p, yaw_box + math.pi)), i)
-                            for i, p in decoded.items())
+            coarse = []
+            for n, (i, p) in enumerate(decoded.items()):
+                if n % STOP_POLL == 0 and interrupted():
+                    return fallback(SparseStatus.INTERRUPTED, 'interrupted while scoring the code restarts')
+                coarse.append((min(code_energy(i, p, yaw_box), code_energy(i, p, yaw_box + math.pi)), i))
+            coarse.sort()
             best_restart = None
             for _, i in coarse[:int(cfg.code_restarts)]:
                 for y in yaws:
@@ -518,10 +526,11 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
                     if best_restart is None or e < best_restart[0]:
                         t_i, s_i = box_init(decoded[i].numpy().astype(np.float64), center, size, float(y))
                         best_restart = (e, i, (float(y), t_i, s_i, f'training code {i}'))
-        if interrupted():
-            return fallback(SparseStatus.INTERRUPTED, 'interrupted before the code restart')
         if best_restart is not None and math.isfinite(best_restart[0]):
-            runs.append((descend(*best_restart[2][:3], train[best_restart[1]], slam_common), best_restart[2]))
+            run = descend(*best_restart[2][:3], train[best_restart[1]], slam_common)
+            if run is None:
+                return fallback(SparseStatus.INTERRUPTED, 'interrupted in the code restart\'s run')
+            runs.append((run, best_restart[2]))
 
     # ---- which run: each end state is scored on the common landmark set; a hypothesis or restart replaces the box
     # run only when it is clearly better: `placement_margin` lower in total and no worse in the silhouette term

@@ -88,7 +88,7 @@ def test_a_dense_run_interrupted_at_shutdown_says_so(prior, two_chairs):
 
 
 def test_a_sparse_run_asked_to_stop_yields_and_changes_nothing(prior, two_chairs):
-    """A sparse stage stopped between its runs (a node with a new object's first mesh waiting) ends `yielded`:
+    """A sparse stage asked to stop (a node with a new object's first mesh waiting) ends `yielded`:
     no outcome, no next stage, the fused estimate and no sparse result kept; run again, it completes."""
     K, frames, _, _ = two_chairs
     cfg = fast_config()

@@ -91,23 +91,28 @@ def test_degenerate_input_falls_back_with_a_reason(prior, chair_scene):
     assert not res.ok and 'views' in res.reason
 
 
-def test_a_sparse_stage_asked_to_stop_ends_between_its_runs_and_keeps_nothing(prior, chair_scene):
-    """should_stop polled between the runs: True ends the stage at once (status INTERRUPTED, not ok); asked after
-    its first run, it stops after that one, and a stage never asked runs every run as before."""
+def test_a_sparse_stage_asked_to_stop_ends_at_once_and_keeps_nothing(prior, chair_scene):
+    """should_stop is polled every iteration of every run and during the code-restart scoring (so that a new
+    object's first mesh does not wait for a whole run): True at any poll ends the stage there (status INTERRUPTED,
+    not ok); a stage never asked runs every run as before."""
     from frodo_optim.sparse import SparseStatus
     cfg = SparseConfig(iterations=3, code_restarts=1)
     polls = []
-    res = refine(prior, chair_scene['code'], chair_scene['box'], chair_scene['views'], config=cfg,
-                 should_stop=lambda: polls.append(1) or True)
-    assert res.status is SparseStatus.INTERRUPTED and not res.ok and len(polls) == 1 and 'interrupted' in res.reason
-    polls.clear()
-    res = refine(prior, chair_scene['code'], chair_scene['box'], chair_scene['views'], config=cfg,
-                 should_stop=lambda: polls.append(1) or len(polls) > 1)
-    assert res.status is SparseStatus.INTERRUPTED and 'after 1 of its runs' in res.reason
     full = refine(prior, chair_scene['code'], chair_scene['box'], chair_scene['views'], config=cfg,
-                  should_stop=lambda: False)
+                  should_stop=lambda: polls.append(1) and False)
     plain = refine(prior, chair_scene['code'], chair_scene['box'], chair_scene['views'], config=cfg)
     assert full.ok and full.total_iterations == plain.total_iterations and np.array_equal(full.code, plain.code)
+    every = len(polls)
+    assert every > 3 * (cfg.iterations + 1)          # three runs (box, hypothesis, code restart) and the scoring
+    reasons = set()
+    for stop_at in range(1, every + 1):
+        polls.clear()
+        res = refine(prior, chair_scene['code'], chair_scene['box'], chair_scene['views'], config=cfg,
+                     should_stop=lambda: polls.append(1) or len(polls) >= stop_at)
+        assert res.status is SparseStatus.INTERRUPTED and not res.ok and len(polls) == stop_at
+        reasons.add(res.reason)
+    assert {'interrupted in run 1', 'interrupted in run 2', 'interrupted while scoring the code restarts',
+            "interrupted in the code restart's run"} <= reasons
 
 
 def test_diverging_optimisation_falls_back_to_the_best_state(prior, chair_scene):
