@@ -243,7 +243,8 @@ def dense_silhouette(volume: torch.Tensor, R: torch.Tensor, t: torch.Tensor, s: 
     volume (1, 1, R, R, R): SDF grid indexed [z, y, x] over [-1, 1]^3 (grid_sample layout); R (3, 3), t (3,),
     s (): the object pose. H = 1 - prod sig(zeta f) over samples every `step` along the ray inside the cube.
     Differentiable in the volume values and the pose; all samples are read once without gradient, only those
-    with |zeta f| < ACTIVE_LOGIT again with it (the others are constants: their slope is negligible).
+    with |zeta f| < ACTIVE_LOGIT on rays that are not saturated (log prod sig >= -ACTIVE_LOGIT) again with it (the
+    others are constants: their slope, or the ray's dH, is below e^-ACTIVE_LOGIT; issue 28).
     bounds (lo (3,), hi (3,)): the part of the cube that is sampled (None: all of it); `surface_bounds` gives the
     box beyond which every sample is a constant near 0, so rays are clipped to it (a speed-up, issue 28).
     """
@@ -269,10 +270,13 @@ def dense_silhouette(volume: torch.Tensor, R: torch.Tensor, t: torch.Tensor, s: 
         k = (torch.arange(len(ray), device=o.device) - first[ray]).to(o.dtype) + 0.5
         x = o.reshape(-1, 3)[ray] + (t_near.reshape(-1)[ray] + k * step)[:, None] * d.reshape(-1, 3)[ray]
         f = _read_volume(volume.detach(), x, ACTIVE_LOGIT / sharpness)
-        # samples far from the surface have a flat log-sigmoid: constants; the band gets the gradient
-        active = (sharpness * f).abs() < ACTIVE_LOGIT
-        log_background = torch.zeros(V * N, dtype=o.dtype, device=o.device).index_add_(
-            0, ray, F.logsigmoid(sharpness * f) * ~active)
+        # samples far from the surface have a flat log-sigmoid: constants; the band gets the gradient, except on
+        # rays that are saturated (log of the background probability below -ACTIVE_LOGIT: H within e^-12 of 1,
+        # so dH/dG of every sample on them is below that)
+        log_sig = F.logsigmoid(sharpness * f)
+        saturated = torch.zeros(V * N, dtype=o.dtype, device=o.device).index_add_(0, ray, log_sig) < -ACTIVE_LOGIT
+        active = ((sharpness * f).abs() < ACTIVE_LOGIT) & ~saturated[ray]
+        log_background = torch.zeros(V * N, dtype=o.dtype, device=o.device).index_add_(0, ray, log_sig * ~active)
     r_a, k_a = ray[active], k[active]
     if torch.is_grad_enabled() and len(r_a):
         x_a = o.reshape(-1, 3)[r_a] + (t_near.reshape(-1)[r_a] + k_a * step)[:, None] * d.reshape(-1, 3)[r_a]

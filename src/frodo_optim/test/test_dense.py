@@ -10,7 +10,7 @@ import torch
 from frodo_common.evaluation import point_metrics, sample_surface
 from frodo_common.geometry import look_at
 from frodo_datasets.render import Material, Renderer, RenderObject, intrinsics
-from frodo_optim.dense import (DenseConfig, Rays, dense_silhouette, implicit_surface_points, make_rays,
+from frodo_optim.dense import (ACTIVE_LOGIT, DenseConfig, Rays, dense_silhouette, implicit_surface_points, make_rays,
                                pyramid_levels, refine_dense, refine_dense_starts, sdf_distance, so3_exp,
                                surface_bounds, vjp_points)
 from frodo_optim.photometric import (LABEL_OBJECT, ViewBatch, dense_view_from_frame, photometric_energy, visible)
@@ -150,8 +150,8 @@ def test_dense_silhouette_gradients(prior, scene):
     assert float(true) < float(energy_pose(p0))
 
 
-def _silhouette_every_sample(volume, R, t, s, rays, step, sharpness, confidence):
-    """Es read at every lattice sample of every ray inside the cube (no clipping, no empty-space skipping)."""
+def _log_background_every_sample(volume, R, t, s, rays, step, sharpness):
+    """log prod sig(zeta f) per ray (V, N), read at every lattice sample inside the cube (no clipping, no skipping)."""
     o = (rays.origin - t) @ R / s
     d = rays.direction @ R
     d = d / torch.linalg.norm(d, dim=-1, keepdim=True)
@@ -164,15 +164,21 @@ def _silhouette_every_sample(volume, R, t, s, rays, step, sharpness, confidence)
     x = o[..., None, :] + ts[..., None] * d[..., None, :]
     f = torch.nn.functional.grid_sample(volume, x.reshape(1, -1, 1, 1, 3), align_corners=True,
                                         padding_mode='border').reshape(valid.shape)
-    H = 1 - torch.exp((torch.nn.functional.logsigmoid(sharpness * f) * valid).sum(-1))
+    return (torch.nn.functional.logsigmoid(sharpness * f) * valid).sum(-1)
+
+
+def _silhouette_every_sample(volume, R, t, s, rays, step, sharpness, confidence):
+    """Es from `_log_background_every_sample`."""
+    H = 1 - torch.exp(_log_background_every_sample(volume, R, t, s, rays, step, sharpness))
     pf = confidence * rays.target + (1 - confidence) * (1 - rays.target)
     nll = -torch.log((H * pf + (1 - H) * (1 - pf)).clamp_min(1e-6))
     return ((nll * rays.weight).sum(1) / rays.weight.sum(1).clamp_min(1.0)).mean()
 
 
 def test_clipped_and_skipped_silhouette_equals_reading_every_sample(prior, scene):
-    """Rays clipped to the surface's box and empty blocks skipped (issue 28) leave Es and its gradients as reading
-    every sample does: the samples left out are all outside the active band (log sig(zeta f) ~ 0)."""
+    """Rays clipped to the surface's box, empty blocks skipped and saturated rays held constant (issue 28) leave Es
+    and its gradients as reading every sample does: the samples left out are all outside the active band (log
+    sig(zeta f) ~ 0), and on a ray with log prod sig < -ACTIVE_LOGIT (H ~ 1) no sample has a slope that counts."""
     cfg = DenseConfig()
     rays = make_rays(scene['views'], cfg, 1, torch.Generator().manual_seed(0))[0]
     grid = sdf_grid(lambda p: prior.sdf_numpy(p, scene['other']), 32, coarse=2)
@@ -191,6 +197,10 @@ def test_clipped_and_skipped_silhouette_equals_reading_every_sample(prior, scene
         grads.append(torch.cat([g.reshape(-1) for g in torch.autograd.grad(e, [vol, *pose])]))
     assert 0.05 < energies[1] < 5 and abs(energies[0] - energies[1]) < 1e-4 * energies[1]
     assert float(torch.linalg.norm(grads[0] - grads[1])) < 1e-3 * float(torch.linalg.norm(grads[1]))
+    with torch.no_grad():
+        log_background = _log_background_every_sample(volume, T[:3, :3] / 0.52, T[:3, 3], torch.tensor(0.52), rays,
+                                                      cfg.ray_step, cfg.sharpness)
+    assert float((log_background < -ACTIVE_LOGIT).float().mean()) > 0.1       # the scene has saturated rays
 
 
 def test_code_gradient_from_the_heaviest_band_points_equals_the_whole_band(prior, scene):
