@@ -14,8 +14,8 @@ Sections (each a function returning plain data; a section that cannot run says w
 - `association`: per-frame latency against the objects in view, association (`add_frame`) and box
   refinement (`refine_boxes`) separately and together (paper Sec. 5.1).
 - `end_to_end`: `frodo run` of the demo bag: wall time, per-stage figures from the nodes' diagnostics
-  and objects.json, the seconds from each object's confirmation (its first track) to its first fused, sparse
-  and dense state, and the intervals between each node's `/diagnostics` reports (contract: at least
+  and objects.json, the seconds from each object's confirmation (its first track) to its first code, its first
+  code of `min_views` views (`code_ready`: no stage runs before) and its first fused, sparse and dense state, and the intervals between each node's `/diagnostics` reports (contract: at least
   1 Hz), from their publish stamps and, separately, their arrival at a probe.
 - `room`: a synthetic room of 20 objects and 300 frames (`frodo synth --objects 20 --frames 300 --seed 7777`,
   the default walk) reconstructed offline by `frodo reconstruct` as a user runs it (its own process, start-up
@@ -321,10 +321,12 @@ def association_latency(objects: list[int], frames: int, seed: int = 0) -> dict[
 
 def stage_latencies(confirmed: dict[int, float], reached: dict[int, dict[str, float]]) -> dict[str, list[float]]:
     """Per stage, the seconds from each object's confirmation (its first track) to its first state at that stage,
-    sorted, and to its first fused code ('code'); objects that never reached a stage are left out of its list."""
+    sorted, to its first fused code ('code') and to its first code of as many views as the optimiser needs
+    ('code_ready', `OptimConfig.min_views`: before it no stage can run); objects that never reached a stage are
+    left out of its list."""
     from frodo_optim.states import STAGES
     return {stage: sorted(round(reached[oid][stage] - confirmed[oid], 2) for oid in confirmed
-                          if stage in reached.get(oid, {})) for stage in ('code', *STAGES)}
+                          if stage in reached.get(oid, {})) for stage in ('code', 'code_ready', *STAGES)}
 
 
 def end_to_end(bag: Path, out: Path, rate: float) -> dict[str, Any]:
@@ -340,6 +342,8 @@ def end_to_end(bag: Path, out: Path, rate: float) -> dict[str, Any]:
     from frodo_common import topics
     from frodo_optim.states import OBJECT_STATES, STAGES
     bag = demo_bag(bag)
+    from frodo_optim.config import OptimConfig
+    min_views = OptimConfig().min_views           # the demo run uses the default
     confirmed: dict[int, float] = {}          # object -> when its track first reached the probe
     reached: dict[int, dict[str, float]] = {}  # object -> stage -> when its state first said that stage
 
@@ -360,8 +364,11 @@ def end_to_end(bag: Path, out: Path, rate: float) -> dict[str, Any]:
     def on_codes(msg: PointCloud2) -> None:    # the fused stage needs the object's code (shape_node) as well
         now = time.monotonic()
         with lock:
-            for oid in conv.cloud_to_table(msg)['object_id']:
-                reached.setdefault(int(oid), {}).setdefault('code', now)
+            for row in conv.cloud_to_table(msg):
+                times = reached.setdefault(int(row['object_id']), {})
+                times.setdefault('code', now)
+                if int(row['num_views']) >= min_views:
+                    times.setdefault('code_ready', now)
     arrivals: dict[str, list[float]] = {}     # when the probe received each report
     sent: dict[str, list[float]] = {}         # header stamps: when the node published it
     last: dict[str, dict[str, str]] = {}
