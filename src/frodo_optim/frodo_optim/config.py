@@ -22,6 +22,7 @@ class OptimConfig:
     prior: str = DEFAULT_PRIOR
     device: str = 'auto'
     mesh_resolution: int = 96
+    fused_mesh_resolution: int = 64
     min_views: int = 2
     fill_views: int = 16
     code_change_tolerance: float = 0.02
@@ -45,6 +46,8 @@ _TABLE: tuple[tuple[str, tuple[str, ...], str], ...] = (
     ('prior', ('prior',), 'Shipped prior name (frodo_shape/priors/<name>) or path to a prior folder.'),
     ('device', ('device',), "Torch device: 'auto' (cuda if available), 'cpu' or 'cuda'."),
     ('mesh_resolution', ('mesh_resolution',), 'Marching-cubes grid resolution for decoded meshes.'),
+    ('fused_mesh_resolution', ('fused_mesh_resolution',), 'Marching-cubes grid of the fused stage\'s mesh (an '
+     'object\'s first, shown until its sparse stage ends: coarser, so that it comes sooner; at most mesh_resolution).'),
     ('min_views', ('min_views',), 'Views (kept, associated detections) an object needs before it is reconstructed.'),
     ('fill_views', ('fill_views',), 'An object with fewer kept views than this is optimised with its pruned '
      'associated views too (truncated or overlapping; evenly spread) up to this many; 0: kept views only.'),

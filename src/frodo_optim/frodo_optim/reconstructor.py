@@ -203,7 +203,8 @@ class ObjectReconstructor:
         cached = self.mesh_cache.get(obj.object_id)
         tol = self.config.code_change_tolerance
         if cached is None or np.linalg.norm(obj.code - cached[0]) > tol * max(np.linalg.norm(cached[0]), 1e-6):
-            mesh = self.prior.mesh(obj.code, resolution=self.config.mesh_resolution)
+            # the object's first mesh, shown until its sparse stage ends: coarser, so that it comes sooner
+            mesh = self.prior.mesh(obj.code, resolution=min(self.config.fused_mesh_resolution, self.config.mesh_resolution))
             if mesh is None or len(mesh.faces) == 0:
                 return None
             self.mesh_cache[obj.object_id] = (obj.code, mesh)

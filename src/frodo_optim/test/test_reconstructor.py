@@ -76,6 +76,32 @@ def test_all_three_stages_run_and_each_ends_with_a_reason(prior, two_chairs):
     assert {'fused_s', 'sparse_s', 'dense_s'} <= set(final.timings)
 
 
+class Resolutions:
+    """The real prior, recording the resolution of every mesh it makes."""
+
+    def __init__(self, prior):
+        self.prior, self.resolutions = prior, []
+
+    def __getattr__(self, name):
+        return getattr(self.prior, name)
+
+    def mesh(self, code, resolution=64):
+        self.resolutions.append(resolution)
+        return self.prior.mesh(code, resolution=resolution)
+
+
+def test_the_fused_mesh_is_coarser_and_the_refined_ones_at_mesh_resolution(prior, two_chairs):
+    """An object's first mesh comes at fused_mesh_resolution (sooner), the sparse and dense ones at
+    mesh_resolution; a fused resolution above mesh_resolution is capped to it."""
+    K, frames, _, _ = two_chairs
+    for fused, expected in ((16, 16), (64, 32)):
+        cfg = fast_config(fused_mesh_resolution=fused)
+        counting = Resolutions(prior)
+        out = ObjectReconstructor(counting, cfg).reconstruct(chair_input(two_chairs), memory_of(frames, K, cfg), Scene())
+        assert [s.stage for s in out.stages] == ['fused', 'sparse', 'dense']
+        assert counting.resolutions[0] == expected and set(counting.resolutions[1:]) == {cfg.mesh_resolution}
+
+
 def test_a_dense_run_interrupted_at_shutdown_says_so(prior, two_chairs):
     K, frames, _, _ = two_chairs
     cfg = fast_config()
