@@ -45,7 +45,7 @@ class OptimConfig:
 _TABLE: tuple[tuple[str, tuple[str, ...], str], ...] = (
     ('prior', ('prior',), 'Shipped prior name (frodo_shape/priors/<name>) or path to a prior folder.'),
     ('device', ('device',), "Torch device: 'auto' (cuda if available), 'cpu' or 'cuda'."),
-    ('mesh_resolution', ('mesh_resolution',), 'Marching-cubes grid resolution for decoded meshes.'),
+    ('mesh_resolution', ('mesh_resolution',), 'Marching-cubes grid resolution of the sparse and dense stages\' meshes.'),
     ('fused_mesh_resolution', ('fused_mesh_resolution',), 'Marching-cubes grid of the fused stage\'s mesh (an '
      'object\'s first, shown until its sparse stage ends: coarser, so that it comes sooner; at most mesh_resolution).'),
     ('min_views', ('min_views',), 'Views (kept, associated detections) an object needs before it is reconstructed.'),
