@@ -15,8 +15,9 @@ Sections (each a function returning plain data; a section that cannot run says w
   refinement (`refine_boxes`) separately and together (paper Sec. 5.1).
 - `end_to_end`: `frodo run` of the demo bag: wall time, per-stage figures from the nodes' diagnostics
   and objects.json, the seconds from each object's confirmation (its first track) to its first code, its first
-  code of `min_views` views (`code_ready`: no stage runs before) and its first fused, sparse and dense state, and the intervals between each node's `/diagnostics` reports (contract: at least
-  1 Hz), from their publish stamps and, separately, their arrival at a probe.
+  code of `min_views` views (`code_ready`: no stage runs before) and its first fused, sparse and dense state,
+  and the intervals between each node's `/diagnostics` reports (contract: at least 1 Hz), from their publish
+  stamps and, separately, their arrival at a probe.
 - `room`: a synthetic room of 20 objects and 300 frames (`frodo synth --objects 20 --frames 300 --seed 7777`,
   the default walk) reconstructed offline by `frodo reconstruct` as a user runs it (its own process, start-up
   included): wall seconds, objects found, false positives, CD and F1@5cm (`--quick`: 8 objects, 150 frames).
@@ -340,9 +341,9 @@ def end_to_end(bag: Path, out: Path, rate: float) -> dict[str, Any]:
     from frodo_bringup.session import RosSession
     from frodo_common import conversions as conv
     from frodo_common import topics
+    from frodo_optim.config import OptimConfig
     from frodo_optim.states import OBJECT_STATES, STAGES
     bag = demo_bag(bag)
-    from frodo_optim.config import OptimConfig
     min_views = OptimConfig().min_views           # the demo run uses the default
     confirmed: dict[int, float] = {}          # object -> when its track first reached the probe
     reached: dict[int, dict[str, float]] = {}  # object -> stage -> when its state first said that stage

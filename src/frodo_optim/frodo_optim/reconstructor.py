@@ -204,7 +204,8 @@ class ObjectReconstructor:
         tol = self.config.code_change_tolerance
         if cached is None or np.linalg.norm(obj.code - cached[0]) > tol * max(np.linalg.norm(cached[0]), 1e-6):
             # the object's first mesh, shown until its sparse stage ends: coarser, so that it comes sooner
-            mesh = self.prior.mesh(obj.code, resolution=min(self.config.fused_mesh_resolution, self.config.mesh_resolution))
+            resolution = min(self.config.fused_mesh_resolution, self.config.mesh_resolution)
+            mesh = self.prior.mesh(obj.code, resolution=resolution)
             if mesh is None or len(mesh.faces) == 0:
                 return None
             self.mesh_cache[obj.object_id] = (obj.code, mesh)

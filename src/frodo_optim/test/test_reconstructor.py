@@ -46,19 +46,29 @@ def chair_input(two_chairs, oid: int = 1) -> ObjectInput:
     return ObjectInput(oid, 'chair', CHAIR, boxes[oid], codes[oid], 6)
 
 
-class NoSurfaceAfterFirstMesh:
-    """The real prior, except that every mesh after the first decodes to nothing (a refined code far from the
-    prior): the fused stage gets its mesh, the sparse result none."""
+class RecordingPrior:
+    """The real prior, recording the resolution of every mesh it makes."""
 
     def __init__(self, prior):
-        self.prior, self.meshes = prior, 0
+        self.prior, self.resolutions = prior, []
 
     def __getattr__(self, name):
         return getattr(self.prior, name)
 
     def mesh(self, code, resolution=64):
-        self.meshes += 1
-        return self.prior.mesh(code, resolution=resolution) if self.meshes == 1 else None
+        self.resolutions.append(resolution)
+        return self.prior.mesh(code, resolution=resolution)
+
+
+class NoSurfaceAfterFirstMesh(RecordingPrior):
+    """The real prior, except that every mesh after the first decodes to nothing (a refined code far from the
+    prior): the fused stage gets its mesh, the sparse result none."""
+
+    def mesh(self, code, resolution=64):
+        if self.resolutions:
+            self.resolutions.append(resolution)
+            return None
+        return super().mesh(code, resolution)
 
 
 def test_all_three_stages_run_and_each_ends_with_a_reason(prior, two_chairs):
@@ -76,28 +86,15 @@ def test_all_three_stages_run_and_each_ends_with_a_reason(prior, two_chairs):
     assert {'fused_s', 'sparse_s', 'dense_s'} <= set(final.timings)
 
 
-class Resolutions:
-    """The real prior, recording the resolution of every mesh it makes."""
-
-    def __init__(self, prior):
-        self.prior, self.resolutions = prior, []
-
-    def __getattr__(self, name):
-        return getattr(self.prior, name)
-
-    def mesh(self, code, resolution=64):
-        self.resolutions.append(resolution)
-        return self.prior.mesh(code, resolution=resolution)
-
-
 def test_the_fused_mesh_is_coarser_and_the_refined_ones_at_mesh_resolution(prior, two_chairs):
     """An object's first mesh comes at fused_mesh_resolution (sooner), the sparse and dense ones at
     mesh_resolution; a fused resolution above mesh_resolution is capped to it."""
     K, frames, _, _ = two_chairs
     for fused, expected in ((16, 16), (64, 32)):
         cfg = fast_config(fused_mesh_resolution=fused)
-        counting = Resolutions(prior)
-        out = ObjectReconstructor(counting, cfg).reconstruct(chair_input(two_chairs), memory_of(frames, K, cfg), Scene())
+        counting = RecordingPrior(prior)
+        out = ObjectReconstructor(counting, cfg).reconstruct(chair_input(two_chairs), memory_of(frames, K, cfg),
+                                                             Scene())
         assert [s.stage for s in out.stages] == ['fused', 'sparse', 'dense']
         assert counting.resolutions[0] == expected and set(counting.resolutions[1:]) == {cfg.mesh_resolution}
 

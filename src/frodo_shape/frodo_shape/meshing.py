@@ -31,7 +31,7 @@ def sdf_grid(sdf_fn: Callable[[np.ndarray], np.ndarray], resolution: int = 64, b
 
     sdf_fn: points (P, 3) float32 -> sdf (P,). coarse: coarse-to-fine factor (1 = evaluate everything); a factor
     of 4 or more is reached by halving the resolution level by level (96 <- 48 <- 24), each level evaluating only
-    its points near the surface of the level below: on the shipped prior's codes at 96^3 a third of the decoder
+    its points near the surface of the level below: on the shipped prior's codes at 96^3 about 40 % of the decoder
     queries of a single coarse level, and the same grid values where marching cubes reads them (issue 28).
     band: fine points within `band` cell sizes of the level below of the surface (by its values) are evaluated.
     1.5 covers the trilinear error of those values (under one of their cells), so every point outside has the
