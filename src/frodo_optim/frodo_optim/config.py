@@ -89,7 +89,11 @@ _TABLE: tuple[tuple[str, tuple[str, ...], str], ...] = (
      "stage's other runs (box, placement hypothesis, code restart); the lowest dense energy wins (1: the sparse "
      "result only, a third of the dense cost)."),
     ('dense_screen_iterations', ('dense.screen_iterations',), 'With several dense starts: run each this many '
-     'iterations and only the lowest-energy one the rest (successive halving; 0: every start in full).'),
+     'iterations, then only those within dense_screen_margin of the lowest energy the rest (0: every start in full).'),
+    ('dense_screen_margin', ('dense.screen_margin',), 'Check-energy margin above the lowest start within which a '
+     'screened dense start goes on (0: only the lowest).'),
+    ('dense_start_separation', ('dense.start_separation',), 'Metres: a dense start whose placed surface (mean '
+     'chamfer) lies within this of an earlier start\'s is not run (0: every start runs).'),
     ('dense_max_seconds', ('dense.max_seconds',), 'Wall-clock bound of one dense run (per object and start; best '
      'state kept).'),
     ('dense_views', ('dense.max_views',), 'Views (spread evenly over the kept ones) used by the dense stage.'),

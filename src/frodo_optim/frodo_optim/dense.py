@@ -45,7 +45,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Sequence
+from typing import Generator, Sequence
 from dataclasses import dataclass, field, replace
 from enum import Enum
 
@@ -103,7 +103,9 @@ class DenseConfig:
     band_points: int = 8192            # most grid points in the code vector-Jacobian product
     vjp_tail: float = 1e-5             # ... less the smallest |dEs/dG| that sum to under this fraction of all
     grid_band: float = 0.25            # normalised: re-evaluate only the grid within this of the surface (0: all)
-    screen_iterations: int = 0         # several starts: run each this long, continue only the best (0: all in full)
+    screen_iterations: int = 10        # several starts: run each this long, then continue only those near the best
+    screen_margin: float = 0.005       # ... those whose check energy so far is within this of the lowest
+    start_separation: float = 0.02     # metres: a start whose placed surface is closer to an earlier one's is skipped
     seed: int = 0
 
 
@@ -114,6 +116,7 @@ class DenseStop(Enum):
     COMPLETED = 'completed'                  # every iteration ran
     TIME_LIMIT = 'time limit'                # DenseConfig.max_seconds reached
     INTERRUPTED = 'interrupted'              # should_stop() said so (a stopping node)
+    SCREENED_OUT = 'screened out'            # one of several starts, ended after screening (never the result)
     NO_SURFACE = 'no surface'                # the code of some iteration decodes to no surface
     NON_FINITE_ENERGY = 'non-finite energy'
     NO_VIEWS = 'no usable views'
@@ -346,6 +349,45 @@ def sdf_distance(prior, points_world: torch.Tensor, z: torch.Tensor, R, t, s, tr
 
 
 # ------------------------------------------------------------------ stage
+class _RunClock:
+    """Seconds a run has been running, not counting its pauses (other starts running in between)."""
+
+    def __init__(self):
+        self._spent, self._since = 0.0, time.perf_counter()
+
+    def seconds(self) -> float:
+        return self._spent + (time.perf_counter() - self._since if self._since is not None else 0.0)
+
+    def pause(self) -> None:
+        self._spent, self._since = self.seconds(), None
+
+    def resume(self) -> None:
+        self._since = time.perf_counter()
+
+
+def distinct_starts(prior, starts: Sequence[tuple], separation: float) -> list[int]:
+    """Indices of the starts (code, T_world_object) to run: in order, each whose placed surface (the point decoder's
+    2048 points, in the world) is at least `separation` metres (symmetric mean chamfer) from every start kept before
+    it. Why: the sparse stage's runs often end in one place (on the demo walk its three end states lie 0.9-2.9 cm
+    apart and their dense results within 0.5 points of F1@5cm), and a dense run from there costs as much again."""
+    if len(starts) < 2 or separation <= 0:
+        return list(range(len(starts)))
+    with torch.no_grad():
+        points = prior.decode_points(np.stack([np.asarray(c, np.float32) for c, _ in starts])).float().cpu()
+    transforms = torch.as_tensor(np.stack([np.asarray(T, np.float64) for _, T in starts]), dtype=torch.float32)
+    world = points @ transforms[:, :3, :3].transpose(1, 2) + transforms[:, None, :3, 3]
+    kept = [0]
+    for j in range(1, len(starts)):
+        if all(_chamfer(world[j], world[i]) >= separation for i in kept):
+            kept.append(j)
+    return kept
+
+
+def _chamfer(a: torch.Tensor, b: torch.Tensor) -> float:
+    d = torch.cdist(a, b)
+    return 0.5 * float(d.amin(1).mean() + d.amin(0).mean())
+
+
 def refine_dense_starts(prior, code, T_world_object: np.ndarray, views: list[DenseView],
                         slam_points: np.ndarray | None = None, box=None, config: DenseConfig | None = None,
                         should_stop=None, floor_height: float | None = None,
@@ -359,51 +401,69 @@ def refine_dense_starts(prior, code, T_world_object: np.ndarray, views: list[Den
     estimates ended 20-35 points of F1@5cm apart), and its check energy -- same views, rays, landmarks and
     priors for every start -- picked the better end state 7 times in 10 (docs/experiments/frodo_optim_history.md,
     "Dense starts").
+    Cost (issue 28): a start within `config.start_separation` of an earlier one is not run (`distinct_starts`);
+    with `config.screen_iterations` N > 0 every start runs N iterations, and only those whose lowest check energy
+    so far is within `config.screen_margin` of the lowest of all go on, each exactly as if it had run alone.
     A later start wins only with a check energy below the first start's best (which is never above the sparse
     result's own), so the result is never worse, by the energy, than the dense stage from the sparse result.
     A result from a later start is marked improved (it replaces the sparse estimate) even if its own run did
     not lower its energy. Other arguments as `refine_dense`.
     """
-    starts = [(code, T_world_object)] + [tuple(a[:2]) for a in alternatives][:max(0, int(max_starts) - 1)]
     cfg = config or DenseConfig()
+    candidates = [(code, T_world_object)] + [tuple(a[:2]) for a in alternatives][:max(0, int(max_starts) - 1)]
+    index = distinct_starts(prior, candidates, float(cfg.start_separation))
+    runs = [_dense_run(prior, *candidates[i], views, slam_points, box, cfg, should_stop, floor_height, height_range)
+            for i in index]
     screen = int(cfg.screen_iterations)
-    screening = len(starts) > 1 and 0 < screen < int(cfg.iterations)
-    run_cfg = replace(cfg, iterations=screen) if screening else cfg
-    results, skipped = [], False
-    for code, T in starts:
-        if results and should_stop is not None and should_stop():
-            skipped = True
+    screening = len(runs) > 1 and 0 < screen < int(cfg.iterations)
+    energies: list[list[float]] = [[] for _ in runs]
+    results: list[DenseResult | None] = [None] * len(runs)
+
+    def advance(i: int, until: int | None = None, stop: bool = False) -> None:
+        """Run start i until it has computed the check energy of iteration `until` (None: to its end); stop: end it."""
+        while results[i] is None and (stop or until is None or len(energies[i]) <= until):
+            try:
+                energies[i].append(runs[i].send(True if stop else None))
+            except StopIteration as end:
+                results[i] = end.value
+
+    started = 0
+    for i in range(len(runs)):
+        if i and should_stop is not None and should_stop():
             break
-        results.append(refine_dense(prior, code, T, views, slam_points, box, run_cfg, should_stop=should_stop,
-                                    floor_height=floor_height, height_range=height_range))
-
-    def check(r: DenseResult) -> float:
-        e = r.energies.get('total', math.inf)
-        return e if math.isfinite(e) else math.inf
-
-    best = min(range(len(results)), key=lambda i: (check(results[i]), i))
-    if not check(results[best]) < check(results[0]):
+        advance(i, screen if screening else None)
+        started += 1
+    continued = started
+    if screening:
+        lowest = {i: min(energies[i], default=math.inf) if results[i] is None else _check(results[i])
+                  for i in range(started)}
+        floor = min(lowest.values())
+        for i in range(started):
+            advance(i, None, stop=lowest[i] > floor + float(cfg.screen_margin))
+        continued = sum(r.stop is not DenseStop.SCREENED_OUT for r in results[:started])
+    done = [r for r in results if r is not None]
+    best = min(range(len(done)), key=lambda i: (_check(done[i]), i))
+    if not _check(done[best]) < _check(done[0]):
         best = 0
-    chosen = results[best]
-    if screening and not skipped and chosen.stop is DenseStop.COMPLETED:
-        # successive halving: only the best screened start gets the remaining iterations, from its best state
-        # (so the continued run never ends above it)
-        rest = refine_dense(prior, chosen.code, chosen.T_world_object, views, slam_points, box,
-                            replace(cfg, iterations=int(cfg.iterations) - screen), should_stop=should_stop,
-                            floor_height=floor_height, height_range=height_range)
-        results.append(rest)
-        if check(rest) <= check(chosen):
-            rest.improved = rest.improved or chosen.improved
-            rest.reason = f'best of {len(starts)} starts after {screen} iterations, continued: {rest.reason}'
-            chosen = rest
+    chosen = done[best]
+    if screening and started > 1:
+        chosen.reason = f'{continued} of {started} starts continued after {screen} iterations: {chosen.reason}'
+    if len(index) < len(candidates):
+        chosen.reason = f'{len(candidates) - len(index)} of {len(candidates)} starts alike, not run; {chosen.reason}'
     if best > 0:
         chosen.improved = True
-        chosen.reason = f'start {best} of {len(starts)} (E {check(results[0]):.3f} from the sparse result): {chosen.reason}'
-    chosen.seconds = sum(r.seconds for r in results)
-    chosen.total_iterations = sum(r.iterations for r in results)
-    if skipped or any(r.stop is DenseStop.INTERRUPTED for r in results):
+        chosen.reason = f'start {index[best]} of {len(candidates)} (E {_check(done[0]):.3f} from the sparse result): ' \
+                        f'{chosen.reason}'
+    chosen.seconds = sum(r.seconds for r in done)
+    chosen.total_iterations = sum(r.iterations for r in done)
+    if started < len(runs) or any(r.stop is DenseStop.INTERRUPTED for r in done):
         chosen.stop = DenseStop.INTERRUPTED     # not every start ran to its end: say so, whichever won
-    return chosen, best
+    return chosen, index[best]
+
+
+def _check(r: DenseResult) -> float:
+    e = r.energies.get('total', math.inf)
+    return e if math.isfinite(e) else math.inf
 
 
 def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView], slam_points: np.ndarray | None = None,
@@ -418,8 +478,27 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
     keeping the best state so far). floor_height (world z) / height_range (m): the support priors E_floor / E_size
     (`support.py`, weights w_floor / w_height); None: off. Never raises on bad input: returns the input with improved=False and a reason.
     """
+    return _finish(_dense_run(prior, code, T_world_object, views, slam_points, box, config, should_stop, floor_height,
+                              height_range))
+
+
+def _finish(run: Generator[float, bool | None, DenseResult]) -> DenseResult:
+    """Runs a `_dense_run` to its end; its result."""
+    try:
+        while True:
+            run.send(None)
+    except StopIteration as end:
+        return end.value
+
+
+def _dense_run(prior, code, T_world_object: np.ndarray, views: list[DenseView], slam_points: np.ndarray | None,
+               box, config: DenseConfig | None, should_stop, floor_height: float | None,
+               height_range: tuple[float, float] | None) -> Generator[float, bool | None, DenseResult]:
+    """`refine_dense` as a generator, so that several starts can run in turns (`refine_dense_starts`): yields each
+    iteration's check energy before its step and ends there with the result so far when sent True (SCREENED_OUT);
+    returns the DenseResult. Its clock (time limit, seconds) counts only the time it runs."""
     cfg = config or DenseConfig()
-    start = time.perf_counter()
+    clock = _RunClock()
     code = np.asarray(code, dtype=np.float32)
     T0 = np.asarray(T_world_object, dtype=np.float64)
     s0 = float(np.linalg.norm(T0[:3, 0]))
@@ -427,7 +506,7 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
 
     def unchanged(stop: DenseStop, reason: str, **extra) -> DenseResult:
         return DenseResult(code, T0, s0, R0, T0[:3, 3].copy(), improved=False, reason=reason, stop=stop, views=len(views),
-                           seconds=time.perf_counter() - start, **extra)
+                           seconds=clock.seconds(), **extra)
 
     if not (np.isfinite(code).all() and np.isfinite(T0).all() and s0 > 0):
         return unchanged(DenseStop.INVALID_INPUT, 'non-finite code or pose')
@@ -482,7 +561,7 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
     opt = Adam(groups)
     best, initial, done, reason_stop, stop, history = None, None, 0, '', DenseStop.COMPLETED, []
     iters = max(0, int(cfg.iterations))
-    loop_start = time.perf_counter()
+    loop_start = clock.seconds()
     grid, drift = None, 0.0
     # a grid value kept from an earlier iteration stays outside the active band while its drift (bounded by the
     # summed largest change in the band) leaves it beyond ACTIVE_LOGIT / sharpness and one cell of the surface
@@ -551,11 +630,17 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
             best = (check, it, zc.clone(), R.detach().clone(), t.detach().clone(), float(log_s.detach()), values)
         if it == iters:
             break
-        if time.perf_counter() - start > cfg.max_seconds:
+        if clock.seconds() > cfg.max_seconds:
             reason_stop, stop = f'time limit {cfg.max_seconds:g}s after {it} iterations', DenseStop.TIME_LIMIT
             break
         if should_stop is not None and should_stop():
             reason_stop, stop = f'interrupted after {it} iterations', DenseStop.INTERRUPTED
+            break
+        clock.pause()
+        screened_out = yield check
+        clock.resume()
+        if screened_out:
+            reason_stop, stop = f'screened out after {it} iterations', DenseStop.SCREENED_OUT
             break
         opt.zero_grad()
         total.backward()
@@ -568,7 +653,7 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
                 (sdf_fn(grid_xyz[idx], z) * gv[idx]).sum().backward()
         opt.step()
         done = it + 1
-    per_it = (time.perf_counter() - loop_start) / max(done + 1, 1)
+    per_it = (clock.seconds() - loop_start) / max(done + 1, 1)
     if best is None:
         return unchanged(stop, reason_stop or 'no iteration', initial_energies=initial or {})
     e_best, best_it, zb, Rb, tb, lsb, values_b = best
@@ -587,4 +672,4 @@ def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView]
                          seconds_per_iteration=per_it)
     return DenseResult(zb.cpu().numpy().astype(np.float32), T, sb, Rb.double().cpu().numpy(), tb.double().cpu().numpy(),
                        True, reason, stop, values_b, initial, iterations=done, best_iteration=best_it, views=len(views),
-                       seconds=time.perf_counter() - start, seconds_per_iteration=per_it, check_energies=history)
+                       seconds=clock.seconds(), seconds_per_iteration=per_it, check_energies=history)

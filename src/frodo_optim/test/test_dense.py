@@ -10,9 +10,9 @@ import torch
 from frodo_common.evaluation import point_metrics, sample_surface
 from frodo_common.geometry import look_at
 from frodo_datasets.render import Material, Renderer, RenderObject, intrinsics
-from frodo_optim.dense import (ACTIVE_LOGIT, DenseConfig, Rays, dense_silhouette, implicit_surface_points, make_rays,
-                               pyramid_levels, refine_dense, refine_dense_starts, sdf_distance, so3_exp,
-                               surface_bounds, vjp_points)
+from frodo_optim.dense import (ACTIVE_LOGIT, DenseConfig, Rays, dense_silhouette, distinct_starts,
+                               implicit_surface_points, make_rays, pyramid_levels, refine_dense, refine_dense_starts,
+                               sdf_distance, so3_exp, surface_bounds, vjp_points)
 from frodo_optim.photometric import (LABEL_OBJECT, ViewBatch, dense_view_from_frame, photometric_energy, visible)
 from frodo_optim.sparse import pose_matrix
 from frodo_shape.meshing import grid_points, marching_cubes, sdf_grid
@@ -340,19 +340,42 @@ def test_dense_starts_keep_the_lowest_energy_end_state(prior, scene):
     assert start == 0 and single.reason == first.reason
 
 
-def test_screened_starts_continue_only_the_best_start(prior, scene):
-    """screen_iterations: every start runs that long, only the lowest-energy one runs the rest (successive halving):
-    fewer iterations in all, the start near the truth still wins, and it ends no higher than its screened state."""
+def test_screened_starts_continue_only_those_near_the_best(prior, scene):
+    """screen_iterations: every start runs that long, only those within screen_margin of the lowest energy run the
+    rest, each exactly as if it had run alone; a start alike an earlier one (start_separation) is not run."""
     far = pose_matrix(0.7 + 1.2, scene['T'][:3, 3] + [0.15, -0.1, 0.0], 0.4)
     near = (scene['code'], scene['T'])
-    cfg = DenseConfig(iterations=4, grid_resolution=24, rays_per_view=64, screen_iterations=2)
+    alike = scene['T'].copy()
+    alike[:3, 3] += [0.005, 0.0, 0.0]
+    cfg = DenseConfig(iterations=4, grid_resolution=24, rays_per_view=64, screen_iterations=2, screen_margin=0.0)
     res, start = refine_dense_starts(prior, scene['other'], far, scene['views'], config=cfg,
-                                     alternatives=[(*near, 'near the truth')], max_starts=2)
-    assert start == 1 and res.improved and 'after 2 iterations, continued' in res.reason
-    assert res.total_iterations <= 2 * 2 + 2 < 2 * 4
-    screened = refine_dense(prior, *near, scene['views'], config=replace(cfg, iterations=2))
-    assert res.energies['total'] <= screened.energies['total'] + 1e-6
-    assert np.linalg.norm(res.translation - scene['T'][:3, 3]) < 0.05
+                                     alternatives=[(*near, 'near the truth'), (scene['code'], alike)], max_starts=3)
+    assert start == 1 and res.improved
+    assert '1 of 2 starts continued after 2 iterations' in res.reason and '1 of 3 starts alike' in res.reason
+    assert res.total_iterations == 2 + 4
+    alone = refine_dense(prior, *near, scene['views'], config=cfg)
+    np.testing.assert_array_equal(res.code, alone.code)
+    assert res.check_energies == alone.check_energies and res.energies == alone.energies
+    # a margin wider than the gap continues both: the same as running every start in full
+    wide, start = refine_dense_starts(prior, scene['other'], far, scene['views'], config=replace(cfg, screen_margin=10.0),
+                                      alternatives=[near], max_starts=2)
+    full, full_start = refine_dense_starts(prior, scene['other'], far, scene['views'],
+                                           config=replace(cfg, screen_iterations=0), alternatives=[near], max_starts=2)
+    assert wide.total_iterations == full.total_iterations == 8 and start == full_start == 1
+    np.testing.assert_array_equal(wide.code, full.code)
+
+
+def test_distinct_starts_skips_a_start_whose_surface_lies_where_an_earlier_one_does(prior, scene):
+    """Two starts are alike when their placed surfaces are within start_separation (mean chamfer): the same shape
+    moved by 4 mm is, moved by 10 cm is not."""
+    T = scene['T']
+    shifted = T.copy()
+    shifted[:3, 3] += [0.1, 0.0, 0.0]
+    nudged = T.copy()
+    nudged[:3, 3] += [0.0, 0.004, 0.0]
+    starts = [(scene['code'], T), (scene['code'], nudged), (scene['code'], shifted), (scene['code'], nudged)]
+    assert distinct_starts(prior, starts, 0.02) == [0, 2]
+    assert distinct_starts(prior, starts, 0.0) == [0, 1, 2, 3]
 
 
 def test_time_limit_bounds_the_stage(prior, scene):
