@@ -46,7 +46,7 @@ from __future__ import annotations
 import math
 import time
 from typing import Generator, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from enum import Enum
 
 import numpy as np
