@@ -20,6 +20,7 @@ from typing import Any, Callable, Sequence, TextIO
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import PointCloud2
 import numpy as np
 from visualization_msgs.msg import Marker, MarkerArray
@@ -94,20 +95,23 @@ class OutputCollector:
         self.pids = pids
         self.log = log
         self.foreign: set[tuple[str, str]] = set()   # (node name, pid) of reports from processes not started here
-        self.objects: dict[int, Marker] | None = None
+        self._objects_raw: bytes | None = None        # the latest map, serialised (see _on_objects)
         self.boxes: dict[int, Marker] | None = None
         self.states: dict[int, np.void] = {}
         self._told: dict[int, tuple[int, int]] = {}   # id -> (stage, stage reason) last said by stage_changes
         self._reports: dict[str, collections.deque[tuple[float, dict[str, str]]]] = {}
         self._lock = threading.Lock()
-        node.create_subscription(MarkerArray, topics.OBJECTS, self._on_objects, topics.LATCHED_QOS)
+        node.create_subscription(MarkerArray, topics.OBJECTS, self._on_objects, topics.LATCHED_QOS, raw=True)
         node.create_subscription(MarkerArray, topics.BOXES, self._on_boxes, topics.LATCHED_QOS)
         node.create_subscription(PointCloud2, OBJECT_STATES, self._on_states, topics.LATCHED_QOS)
         node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diagnostics, 50)
 
-    def _on_objects(self, msg: MarkerArray) -> None:
+    def _on_objects(self, raw: bytes) -> None:
+        # Kept serialised: every map carries every object's mesh (~10^5 points), and turning each into Python
+        # objects took this process 10-19 % of a core while the optimiser ran on the same 2 cores (issue 28);
+        # only the latest is read, by `snapshot`.
         with self._lock:
-            self.objects = current_markers(msg)
+            self._objects_raw = raw
 
     def _on_boxes(self, msg: MarkerArray) -> None:
         with self._lock:
@@ -229,9 +233,11 @@ class OutputCollector:
         """(objects, boxes, per-object info from the optimiser's states) of the latest messages; the states of
         objects not on /frodo/objects or /frodo/boxes (deleted since) are left out."""
         with self._lock:
-            objects, boxes = dict(self.objects or {}), dict(self.boxes or {})
-            rows = [row for oid, row in sorted(self.states.items()) if oid in objects or oid in boxes]
-            got_objects, got_boxes = self.objects is not None, self.boxes is not None
+            raw, boxes, got_boxes = self._objects_raw, dict(self.boxes or {}), self.boxes is not None
+            states = dict(self.states)
+        got_objects = raw is not None
+        objects = current_markers(deserialize_message(raw, MarkerArray)) if got_objects else {}
+        rows = [row for oid, row in sorted(states.items()) if oid in objects or oid in boxes]
         info = states_to_records(np.array(rows, dtype=rows[0].dtype)) if rows else {}
         return (MarkerArray(markers=[objects[k] for k in sorted(objects)]) if got_objects else None,
                 MarkerArray(markers=[boxes[k] for k in sorted(boxes)]) if got_boxes else None, info)
