@@ -107,9 +107,8 @@ class OutputCollector:
         node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self._on_diagnostics, 50)
 
     def _on_objects(self, raw: bytes) -> None:
-        # Kept serialised: every map carries every object's mesh (~10^5 points), and turning each into Python
-        # objects took this process 10-19 % of a core while the optimiser ran on the same 2 cores (issue 28);
-        # only the latest is read, by `snapshot`.
+        # Kept serialised: every map carries every object's mesh, and turning each one into Python objects took
+        # CPU from the optimiser on a small machine (issue 28); only the latest is read, by `snapshot`.
         with self._lock:
             self._objects_raw = raw
 
