@@ -75,6 +75,12 @@ _TABLE: tuple[tuple[str, tuple[str, ...], str], ...] = (
      'the box start only when clearly better on common landmarks and silhouettes.'),
     ('sparse_code_restarts', ('sparse.code_restarts',), "Also start the sparse stage from the best of this many "
      "lowest-energy training codes of the object's class (beyond the paper; 0: off)."),
+    ('sparse_restart_screen_views', ('sparse.restart_screen_views',), 'The code restarts\' candidates (training '
+     'codes, then their yaws) are first ranked by the energy on this many of the views and a subset of the points; '
+     'only the best sparse_restart_screen_keep x sparse_code_restarts get the exact energy (0: every candidate '
+     'exact).'),
+    ('sparse_restart_screen_keep', ('sparse.restart_screen_keep',), 'How many times sparse_code_restarts screened '
+     'candidates get the exact energy.'),
     ('sparse_landmark_filter', ('sparse.landmark_filter',), "Only landmarks in the detections' visual hull enter Eg, "
      "in the sparse and the dense stage; false: every landmark near the box (the paper's setting)."),
     ('support_w_floor', ('sparse.w_floor', 'dense.w_floor'), 'Weight of the floor prior E_floor in the sparse and '

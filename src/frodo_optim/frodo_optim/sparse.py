@@ -44,6 +44,7 @@ returned with a reason when nothing lower than it is found.
 """
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from dataclasses import dataclass, field
@@ -62,7 +63,7 @@ from frodo_optim import placement, support
 
 DT_SIZE = 64          # cells per side of a view's distance-transform crop
 DT_MARGIN = 0.6       # the crop extends this fraction of the box size beyond each side of the detection box
-STOP_POLL = 16        # code-restart scoring polls should_stop every this many codes (~20 ms on a 2-core CPU)
+STOP_POLL = 16        # code-restart scoring polls should_stop every this many energies (~20-90 ms on a 2-core CPU)
 
 
 @dataclass
@@ -94,6 +95,8 @@ class SparseConfig:
     floor_tolerance: float = 0.05     # metres: E_floor = huber((bottom - floor) / floor_tolerance)
     w_height: float = 1.0             # E_size (support.py); needs refine(..., height_range=(lo, hi))
     code_restarts: int = 4            # also start from the best of the k lowest-energy training codes (0: off)
+    restart_screen_views: int = 8     # training codes and their yaws are screened on this many views (0: all views)
+    restart_screen_keep: int = 3      # the screen keeps this many times code_restarts candidates for the exact energy
     landmark_filter: bool = True      # box starts and dense stage too use only visual-hull landmarks (False: paper)
     landmark_tolerance: float = 0.06  # box diagonals off the mask a landmark may project (placement.on_silhouettes)
     seed: int = 0
@@ -275,6 +278,10 @@ class _Batch:
         return (e_pm + e_mp).mean()
 
 
+class _Interrupted(Exception):
+    """should_stop said so while the code restarts were scored."""
+
+
 def _rot(yaw: torch.Tensor) -> torch.Tensor:
     c, s = torch.cos(yaw), torch.sin(yaw)
     zero, one = torch.zeros_like(c), torch.ones_like(c)
@@ -339,7 +346,7 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
     height range (`Category.height_range`) for E_size; None: term off. code_class: the object's class; code
     restarts (`code_restarts`) then draw only that class's training codes. neighbour_boxes: the other objects'
     boxes (centre, size, yaw), for the landmark selection (`placement.on_silhouettes`). should_stop: optional
-    callable polled after the initial search, every iteration of the stage's runs and every `STOP_POLL` codes of
+    callable polled after the initial search, every iteration of the stage's runs and every `STOP_POLL` energies of
     the code-restart scoring (a node that has cheaper work waiting): True ends the stage at once with status
     INTERRUPTED and ok=False (nothing of it is kept; the caller runs it again later).
     Never raises on bad input: returns the box placement with ok=False and a reason.
@@ -375,12 +382,17 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
     use_floor = floor_height is not None and math.isfinite(float(floor_height)) and cfg.w_floor > 0
     use_height = height_range is not None and cfg.w_height > 0
     subset = torch.randperm(pts0.shape[0], generator=gen)[:min(cfg.point_samples, pts0.shape[0])]
+    everything = torch.arange(len(subset))
     mu, sigma = code_statistics(prior.training_codes)
     pts0_np = pts0.numpy().astype(np.float64)
 
-    def energy(pts_norm, z, yaw, t, log_s, landmarks):
+    def energy(pts_norm, z, yaw, t, log_s, landmarks, screen=None):
+        """The stage's energy; screen: a `_Batch` of fewer views, and every term on the point subset only (the
+        code restarts' cheap screen)."""
+        if screen is not None:
+            pts_norm = pts_norm[subset]
         world = torch.exp(log_s) * pts_norm @ _rot(yaw).T + t
-        terms = {'silhouette': batch.silhouette(world, subset),
+        terms = {'silhouette': batch.silhouette(world, subset) if screen is None else screen.silhouette(world, everything),
                  'geometry': _geometry(world, landmarks, cfg.geometry_truncation),
                  'code': (((z - mu) / sigma) ** 2).mean()}
         total = cfg.w_silhouette * terms['silhouette'] + cfg.w_geometry * terms['geometry'] + cfg.w_code * terms['code']
@@ -493,39 +505,58 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
         runs.append((run, candidates[k]))
     # ---- code restarts (beyond the paper): the encoder's code of an unseen design can be a different shape
     # than the silhouettes show, and Adam steps near it do not leave its basin. Every training code (of the
-    # object's class when known) is scored with the exact energy at the input box (shape-specific box fit) with
-    # the best box start's yaw and its opposite; the `code_restarts` best are then scored at every yaw
-    # candidate, and Adam also runs from the best of those
+    # object's class when known) is scored at the input box (shape-specific box fit) with the best box start's
+    # yaw and its opposite; the `code_restarts` best are then scored at every yaw candidate, and Adam also runs
+    # from the best of those
     if cfg.code_restarts > 0 and cfg.optimise_code:
         train = torch.as_tensor(prior.training_codes, dtype=torch.float32).cpu()
         classes = list(getattr(prior, 'training_classes', []))
         pool = [i for i in range(len(train)) if code_class is None or len(classes) != len(train) or classes[i] == code_class]
         yaw_box = candidates[starts[0]][0]
 
-        def code_energy(i: int, pts_i: torch.Tensor, y: float) -> float:
+        # The screen: the energy on `restart_screen_views` of the views (spread evenly), its landmark term on the
+        # point subset, costs a fraction of the exact one and ranks alike; only its `restart_screen_keep` x
+        # code_restarts best candidates of each pass are scored exactly
+        # (docs/experiments/frodo_optim_history.md, "Screened code restarts")
+        n_screen = int(cfg.restart_screen_views)
+        screen = _Batch(select_views(views, n_screen), cfg.truncation_aware) if 0 < n_screen < len(views) else None
+        keep = max(1, int(cfg.restart_screen_keep)) * int(cfg.code_restarts)
+
+        evaluations = itertools.count()
+
+        def code_energy(i: int, pts_i: torch.Tensor, y: float, screened: bool = False) -> float:
+            if next(evaluations) % STOP_POLL == 0 and interrupted():
+                raise _Interrupted
             t_i, s_i = box_init(pts_i.numpy().astype(np.float64), center, size, y)
             e, _ = energy(pts_i, train[i], torch.tensor(y), torch.as_tensor(t_i, dtype=torch.float32),
-                          torch.tensor(math.log(s_i)), slam_common)
+                          torch.tensor(math.log(s_i)), slam_common, screen if screened else None)
             return float(e) if torch.isfinite(e) else math.inf
+
+        def lowest(candidates: list[tuple[int, float]], count: int) -> list[tuple[float, int, float]]:
+            """The `count` (code, yaw) candidates of lowest exact energy, (energy, code, yaw) in order; with a
+            screen, only the screen's `keep` best are scored exactly."""
+            if screen is not None and len(candidates) > keep:
+                screened = sorted((code_energy(i, decoded[i], y, True), n) for n, (i, y) in enumerate(candidates))
+                candidates = [candidates[n] for _, n in screened[:keep]]
+            return sorted((code_energy(i, decoded[i], y), i, y) for i, y in candidates)[:count]
 
         with torch.no_grad():
             decoded = {}
             for chunk in np.array_split(np.array(pool), max(1, len(pool) // 32)):
                 pts_c = prior.decode_points(train[chunk].to(device)).float().cpu()
                 decoded.update({int(i): p for i, p in zip(chunk, pts_c) if torch.isfinite(p).all()})
-            coarse = []
-            for n, (i, p) in enumerate(decoded.items()):
-                if n % STOP_POLL == 0 and interrupted():
-                    return fallback(SparseStatus.INTERRUPTED, 'interrupted while scoring the code restarts')
-                coarse.append((min(code_energy(i, p, yaw_box), code_energy(i, p, yaw_box + math.pi)), i))
-            coarse.sort()
+            # every code at the best box start's yaw and its opposite; then the best codes at every yaw candidate
+            try:
+                coarse = lowest([(i, y) for i in decoded for y in (yaw_box, yaw_box + math.pi)], 2 * int(cfg.code_restarts))
+                codes = list(dict.fromkeys(i for _, i, _ in coarse))[:int(cfg.code_restarts)]
+                fine = lowest([(i, float(y)) for i in codes for y in yaws], 1)
+            except _Interrupted:
+                return fallback(SparseStatus.INTERRUPTED, 'interrupted while scoring the code restarts')
             best_restart = None
-            for _, i in coarse[:int(cfg.code_restarts)]:
-                for y in yaws:
-                    e = code_energy(i, decoded[i], float(y))
-                    if best_restart is None or e < best_restart[0]:
-                        t_i, s_i = box_init(decoded[i].numpy().astype(np.float64), center, size, float(y))
-                        best_restart = (e, i, (float(y), t_i, s_i, f'training code {i}'))
+            if fine:
+                e, i, y = fine[0]
+                t_i, s_i = box_init(decoded[i].numpy().astype(np.float64), center, size, y)
+                best_restart = (e, i, (y, t_i, s_i, f'training code {i}'))
         if best_restart is not None and math.isfinite(best_restart[0]):
             run = descend(*best_restart[2][:3], train[best_restart[1]], slam_common)
             if run is None:

@@ -190,6 +190,24 @@ def test_code_restarts_leave_a_wrong_code_for_a_nearby_training_code(prior, scen
     assert single.alternatives == []       # one run only: nothing else to start from
 
 
+def test_the_code_restart_screen_only_filters_the_exact_scoring(prior, scene):
+    """The screen (energy on restart_screen_views of the 12 views, point subset) only chooses which candidates
+    get the exact energy: keeping every candidate gives the unscreened result bit for bit, and the default
+    screen keeps the same restart here."""
+    tables = [i for i, c in enumerate(prior.training_classes) if c == 'dining table']
+    bad = (0.5 * np.asarray(scene['code']) + 0.5 * prior.training_codes[tables[0]].cpu().numpy()).astype(np.float32)
+    cfg = SparseConfig(seed=0, placement_search=False, iterations=5, code_restarts=4)
+    exact = refine(prior, bad, scene['box'], scene['views'], scene['slam'], dataclasses.replace(cfg, restart_screen_views=0))
+    screened = refine(prior, bad, scene['box'], scene['views'], scene['slam'], cfg)
+    keep_all = refine(prior, bad, scene['box'], scene['views'], scene['slam'],
+                      dataclasses.replace(cfg, restart_screen_keep=10_000))
+    assert 0 < cfg.restart_screen_views < len(scene['views'])
+    assert np.array_equal(keep_all.code, exact.code) and np.array_equal(keep_all.T_world_object, exact.T_world_object)
+    restarts = [s for _, _, s in exact.alternatives] + [exact.placement]
+    assert any(s.startswith('training code') for s in restarts)
+    assert [s for _, _, s in screened.alternatives] + [screened.placement] == restarts
+
+
 def test_sparse_stage_hands_its_visual_hull_landmarks_to_the_dense_stage(prior, scene):
     """With `landmark_filter` (default) the result carries the landmarks the winning run used: the chair's own
     (within 4 cm of its surface), although the box, 4x too wide, also holds the neighbouring table's; with the
