@@ -48,6 +48,8 @@ def test_run_writes_objects_meshes_and_recording(tmp_path):
     assert (tmp_path / 'out' / 'logs' / 'optim_node.log').is_file()
     assert (tmp_path / 'out' / 'frodo.rrd').stat().st_size > 0
     assert 'done: 41 messages played, 1 objects' in output.getvalue()
+    assert 0 <= result.done_after_bag_s < result.seconds
+    assert f'(done {result.done_after_bag_s:.1f} s after the bag ended)' in output.getvalue()
 
 
 def test_run_reports_a_crashed_node(tmp_path):
@@ -80,7 +82,7 @@ def test_run_ignores_and_names_another_graphs_diagnostics(tmp_path):
     text = output.getvalue()
     assert text.count('ignoring /diagnostics of a optim_node with pid 999999') == 1
     assert 'WARNING: another graph ran in this ROS domain (optim_node (pid 999999))' in text
-    assert 'done: 40 messages played, 1 objects'  # 4 topics x 10 frames in text
+    assert 'done: 40 messages played, 1 objects' in text  # 4 topics x 10 frames
 
 
 def test_run_rejects_a_missing_bag_before_starting_nodes(tmp_path):

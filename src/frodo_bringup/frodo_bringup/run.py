@@ -69,6 +69,7 @@ class RunResult:
     done: bool = False
     failures: list[NodeExit] = field(default_factory=list)
     seconds: float = 0.0
+    done_after_bag_s: float | None = None  # from the bag's last message to done (None: not done)
     behind: list[tuple[str, int, int, str]] = field(default_factory=list)  # OutputCollector.behind when done
     foreign: list[tuple[str, str]] = field(default_factory=list)  # (node, pid) of another graph in this ROS domain
 
@@ -284,8 +285,8 @@ def run_bag(bag: str | os.PathLike, out_dir: str | os.PathLike, params_files: Se
                                     pids=lambda: {n: launcher.pids.get(n) for n in launcher.node_names},
                                     log=launcher.log)
         launcher.start()
-        result.play, result.done, result.behind = _play_and_wait(player, collector, launcher, timeout,
-                                                                 startup_timeout, stop)
+        result.play, result.done, result.behind, result.done_after_bag_s = _play_and_wait(
+            player, collector, launcher, timeout, startup_timeout, stop)
         result.records = write_outputs(out, *collector.snapshot())
         result.foreign = sorted(collector.foreign)
     finally:
@@ -310,14 +311,14 @@ def _viewer_params(out: Path) -> Path:
 
 def _play_and_wait(player: Player, collector: OutputCollector, launcher: Launcher, timeout: float,
                    startup_timeout: float, stop: threading.Event
-                   ) -> tuple[PlayStats | None, bool, list[tuple[str, int, int, str]]]:
+                   ) -> tuple[PlayStats | None, bool, list[tuple[str, int, int, str]], float | None]:
     """Wait for the nodes, play, wait until done; returns (playback stats or None, done, the nodes still
-    behind when done: `OutputCollector.behind`)."""
+    behind when done: `OutputCollector.behind`, seconds from the bag's end to done or None)."""
     deadline = time.monotonic() + startup_timeout
     while collector.missing_reports(launcher.node_names) and time.monotonic() < deadline and not stop.is_set():
         stop.wait(0.1)
     if stop.is_set():
-        return None, False, []
+        return None, False, [], None
     missing = collector.missing_reports(launcher.node_names)
     if missing:
         launcher.log(f'no diagnostics from {", ".join(missing)} after {startup_timeout:.0f} s; playing anyway')
@@ -349,12 +350,12 @@ def _play_and_wait(player: Player, collector: OutputCollector, launcher: Launche
             for name, taken, expected, what in behind:
                 launcher.log(f'{name} took {taken} of the {expected} {what} within {grace:.0f} s of the bag\'s end; '
                              'the map is built from what the graph got')
-            return stats, True, behind
+            return stats, True, behind, time.monotonic() - finished
         stop.wait(0.1)
     if not stop.is_set():
         launcher.log(f'graph not done within {timeout:.0f} s of the bag\'s end ({", ".join(collector.optimisers)} '
                      'idle with 0 pending objects and all node counters steady)')
-    return stats, False, []
+    return stats, False, [], None
 
 
 def _exit_code(result: RunResult, interrupted: bool) -> int:
@@ -370,7 +371,8 @@ def _report(result: RunResult, out: Path, output: TextIO) -> None:
     played = f'{result.play.total} messages played' if result.play is not None else 'bag not played'
     state = {EXIT_OK: 'done', EXIT_GRAPH_FAILED: 'FAILED', EXIT_NOT_DONE: 'NOT DONE (timeout)',
              EXIT_INTERRUPTED: 'interrupted'}[result.exit_code]
-    print(f'{state}: {played}, {len(result.records)} objects, {result.seconds:.1f} s; outputs in {out}',
+    after = f' (done {result.done_after_bag_s:.1f} s after the bag ended)' if result.done_after_bag_s is not None else ''
+    print(f'{state}: {played}, {len(result.records)} objects, {result.seconds:.1f} s{after}; outputs in {out}',
           file=output)
     for failure in result.failures:
         print(f'node failure: {failure.describe()}', file=output)
