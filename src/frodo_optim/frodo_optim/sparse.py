@@ -63,7 +63,7 @@ from frodo_optim import placement, support
 
 DT_SIZE = 64          # cells per side of a view's distance-transform crop
 DT_MARGIN = 0.6       # the crop extends this fraction of the box size beyond each side of the detection box
-STOP_POLL = 16        # code-restart scoring polls should_stop every this many energies (~20-90 ms on a 2-core CPU)
+STOP_POLL = 16        # code-restart scoring polls should_stop every this many energies (~35-75 ms on a 2-core CPU)
 
 
 @dataclass
