@@ -48,6 +48,7 @@ from frodo_common.frame_cache import FrameCache
 from frodo_common.params import ParamSpec
 from frodo_common.torch_threads import call_in_passing_thread
 from frodo_common.frames import depth_to_metres
+from frodo_common.marker_wire import MeshMarker, matches_rmw, serialize_marker_array
 from frodo_optim.config import PARAMS as OPTIM_PARAMS, optim_config
 from frodo_optim.core import ObjectEstimate
 from frodo_optim.merge import TABLE_KIND, MapMerger, Retractions
@@ -90,7 +91,12 @@ class OptimNode(FrodoNode):
         self.reconstructor = ObjectReconstructor(prior, self.config)
         self.tracks: dict[int, tuple[str, tuple]] = {}             # id -> (class, (centre, size, yaw))
         self.codes: dict[int, tuple[int, int, np.ndarray]] = {}     # id -> (category, views, code)
-        self.mesh_markers: dict[int, tuple[ObjectEstimate, Marker]] = {}   # id -> (estimate, its mesh marker)
+        self.mesh_markers: dict[int, MeshMarker] = {}                # id -> its estimate's mesh marker
+        # The map is published serialised from arrays (marker_wire) where this RMW reads those bytes back right.
+        self.map_wire = matches_rmw()
+        if not self.map_wire:
+            self.get_logger().warning('this RMW writes visualization_msgs/MarkerArray differently from '
+                                      'frodo_common.marker_wire: the map is published as messages (slower)')
         self.retractions = Retractions()                            # published once, now gone: DELETE every time
         self.resumed: dict[int, int] = {}                           # id -> views of its saved estimate (not re-run yet)
         self.queue = StageQueue()                                   # breadth first: every fused, then sparse, then dense
@@ -389,19 +395,25 @@ class OptimNode(FrodoNode):
             self._publish()
 
     # ------------------------------------------------------------ outputs
-    def _mesh_marker(self, est: ObjectEstimate, stamp_ns: int, frame: str, rgba) -> Marker:
-        """The TRIANGLE_LIST marker of an estimate (stamped `stamp_ns`, its data time), built once per estimate:
-        a map of n objects is republished after every stage of every object, and building all n markers each
-        time made ~40k Point messages per object; they set off full garbage collections that held the GIL for
-        up to a second (optim_node's /diagnostics came 1.4-2.4 s apart under load)."""
+    def _mesh_marker(self, est: ObjectEstimate, stamp_ns: int, frame: str, rgba) -> MeshMarker:
+        """The TRIANGLE_LIST marker of an estimate (stamped `stamp_ns`, its data time), built once per estimate (a
+        map of n objects is republished after every stage of every object), its points kept as an array until the
+        map is serialised: as ~40k Point messages per object they cost ~0.3 s to build and convert, and their
+        garbage set off full collections that held the GIL for up to a second."""
         cached = self.mesh_markers.get(est.object_id)
-        if cached is not None and cached[0] is est:   # same estimate: same mesh, class and colour
-            cached[1].header.stamp = conv.ns_to_stamp(stamp_ns)
-            return cached[1]
-        marker = conv.mesh_to_marker(est.mesh_world.vertices, est.mesh_world.faces, est.class_name, est.object_id,
-                                     stamp_ns, frame, rgba)
-        self.mesh_markers[est.object_id] = (est, marker)
-        return marker
+        if cached is not None and cached.source is est:   # same estimate: same mesh, class and colour
+            cached.restamp(stamp_ns)
+            return cached
+        marker, points = conv.mesh_marker_parts(est.mesh_world.vertices, est.mesh_world.faces, est.class_name,
+                                                 est.object_id, stamp_ns, frame, rgba)
+        self.mesh_markers[est.object_id] = MeshMarker(est, marker, points)
+        return self.mesh_markers[est.object_id]
+
+    def _map_message(self, markers: list) -> MarkerArray | bytes:
+        """The MarkerArray of `markers` (Markers and MeshMarkers), serialised from the arrays where the RMW allows."""
+        if self.map_wire:
+            return serialize_marker_array([m.parts() if isinstance(m, MeshMarker) else m for m in markers])
+        return MarkerArray(markers=[m.message() if isinstance(m, MeshMarker) else m for m in markers])
 
     def _map_stamp(self, estimates) -> int:
         """Data time of a map message (its DELETEs, the state table): the newest stamp received or estimated."""
@@ -410,7 +422,7 @@ class OptimNode(FrodoNode):
 
     def _publish(self) -> None:
         frame = self.params['world_frame']
-        objects, boxes = MarkerArray(), MarkerArray()
+        objects, boxes = [], MarkerArray()      # objects: Markers (deletes) and MeshMarkers
         estimates = sorted(self.estimates.values(), key=lambda e: e.object_id)
         now = self._map_stamp(estimates)
         current = {(est.class_name, est.object_id) for est in estimates}
@@ -418,24 +430,25 @@ class OptimNode(FrodoNode):
         # listener keyed by id then keeps an object whose class changed): a listener that missed a message still
         # drops it. Never DELETEALL (a share of several workers' map holds only this worker's objects).
         for ns, oid in self.retractions.update(current):
-            objects.markers.append(conv.delete_marker(ns, oid, now, frame))
+            objects.append(conv.delete_marker(ns, oid, now, frame))
             boxes.markers.append(conv.delete_marker(ns, oid, now, frame))
         for est in estimates:
             rgba = CLASS_COLOURS.get(est.class_name, (0.7, 0.7, 0.7, 1.0))
             stamp = int(est.stamp_ns) or now       # 0: a map resumed from a file without stamps
-            objects.markers.append(self._mesh_marker(est, stamp, frame, rgba))
+            objects.append(self._mesh_marker(est, stamp, frame, rgba))
             center, size, yaw = est.box
             boxes.markers.append(conv.box_to_marker(center, size, yaw, est.class_name, est.object_id, stamp, frame,
                                                     rgba[:3] + (0.35,)))
         states = estimates_table(estimates)
         self.mesh_markers = {oid: entry for oid, entry in self.mesh_markers.items() if oid in self.estimates}
         if self.merger is None:       # alone: the map; worker k >= 1: its share
-            self.objects_pub.publish(objects)
+            self.objects_pub.publish(self._map_message(objects))
             self.boxes_pub.publish(boxes)
             self.states_pub.publish(conv.table_to_cloud(states, now, frame))
         else:
             with self.merge_lock:
-                self.merger.put_markers('objects', 0, objects)
+                self.merger.put_markers('objects', 0, MarkerArray(
+                    markers=[m.message() if isinstance(m, MeshMarker) else m for m in objects]))
                 self.merger.put_markers('boxes', 0, boxes)
                 self.merger.put_table(0, states)
                 for kind in ('objects', 'boxes', TABLE_KIND):

@@ -1,8 +1,10 @@
 """optim_node builds an object's TRIANGLE_LIST marker once per estimate: republishing the map after another
-object's stage re-stamps the cached marker instead of rebuilding ~40k Point messages per object (whose garbage
-set off GIL-holding full collections and delayed /diagnostics), and the published marker stays the same."""
+object's stage re-stamps the cached marker instead of rebuilding it, its points stay an array, and the map it
+publishes (serialised from those arrays) is the message a rebuilt marker would give."""
 import numpy as np
 import rclpy
+from rclpy.serialization import deserialize_message, serialize_message
+from visualization_msgs.msg import MarkerArray
 
 from frodo_common import conversions as conv
 from frodo_optim.core import fused_estimate
@@ -24,10 +26,15 @@ def test_mesh_marker_is_built_once_per_estimate_and_restamped():
             again = node._mesh_marker(est, 2_000_000_123, 'world', rgba)
             fresh = conv.mesh_to_marker(est.mesh_world.vertices, est.mesh_world.faces, 'chair', 5, 2_000_000_123,
                                         'world', rgba)
-            assert again is first and again == fresh      # same message as a rebuilt one, new stamp included
+            assert again is first and again.message() == fresh   # a rebuilt marker, new stamp included
+            assert node.map_wire                                   # Fast DDS reads the serialised map back
+            delete = conv.delete_marker('table', 9, 5, 'world')
+            as_message = serialize_message(MarkerArray(markers=[delete, fresh]))   # colours: float32 on the wire
+            assert deserialize_message(node._map_message([delete, again]), MarkerArray) == \
+                deserialize_message(as_message, MarkerArray)
             replaced = fused_estimate(5, 'chair', 62, code, 4, mesh, (box[0] + 1.0, box[1], box[2]))
             moved = node._mesh_marker(replaced, 3_000, 'world', rgba)
-            assert moved is not first and moved.points[0].x == first.points[0].x + 1.0
+            assert moved is not first and moved.points[0, 0] == first.points[0, 0] + 1.0
             node.estimates = {5: replaced}
             node._publish()
             assert set(node.mesh_markers) == {5}
