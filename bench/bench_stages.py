@@ -12,6 +12,12 @@ F1@5cm and COMP@5cm against that ground-truth object alone. The bag line counts 
 found, false positives and the classes missed. The last lines pool every bag: per class and stage the mean
 F1, mean COMP and the median centre error. Used for issue 27 (docs/experiments/frodo_association_history.md,
 "Starved views, and where realwalk-tune loses its objects").
+
+With `--oracle`, each matched object's final mesh is also scored after corrections that only the ground truth
+can give, to show what each kind of error costs: moved horizontally so that its bounding-box centre is the
+truth's ("centred"), then the best of four quarter turns about the vertical through that centre ("turned"), or
+instead the best uniform scale in 0.75-1.33 about its bottom centre ("scaled"). What is left after them is
+the shape.
 """
 from __future__ import annotations
 
@@ -27,12 +33,32 @@ from pathlib import Path                                      # noqa: E402
 import numpy as np                                            # noqa: E402
 
 from frodo_bringup.pipeline import PipelineConfig, reconstruct   # noqa: E402
-from frodo_common.evaluation import EvalObject, evaluate, load_ground_truth   # noqa: E402
+from frodo_common.evaluation import EvalObject, evaluate, load_ground_truth, point_metrics, sample_surface   # noqa: E402
 
 STAGES = ('fused', 'sparse', 'dense')
+ORACLES = ('as_is', 'centred', 'turned', 'scaled')
+ORACLE_SCALES = np.exp(np.linspace(np.log(0.75), np.log(4 / 3), 11))
 
 
-def score_bag(bag: str, config: PipelineConfig | None) -> tuple[list[dict], str]:
+def oracle_f1(mesh, truth) -> dict[str, float]:
+    """F1@5cm of `mesh` against `truth` (trimesh meshes) as it is and after the ground-truth corrections of
+    `--oracle` (the module docstring)."""
+    truth_pts, pts = sample_surface(truth), sample_surface(mesh)
+    f1 = lambda p: point_metrics(p, truth_pts)[5]          # noqa: E731
+    centre = truth.bounds.mean(0)
+    shift = centre - mesh.bounds.mean(0)
+    shift[2] = 0.0
+    centred = pts + shift
+    turns = []
+    for k in range(4):
+        c, s = np.cos(k * np.pi / 2), np.sin(k * np.pi / 2)
+        turns.append(f1((centred - centre) @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T + centre))
+    base = np.array([centre[0], centre[1], mesh.bounds[0, 2]])
+    return {'as_is': f1(pts), 'centred': f1(centred), 'turned': max(turns),
+            'scaled': max(f1((centred - base) * k + base) for k in ORACLE_SCALES)}
+
+
+def score_bag(bag: str, config: PipelineConfig | None, oracle: bool = False) -> tuple[list[dict], str]:
     """(one row per matched object, the bag's summary line)."""
     gt = load_ground_truth(bag)
     meshes: dict[int, dict[str, object]] = {}
@@ -59,6 +85,8 @@ def score_bag(bag: str, config: PipelineConfig | None) -> tuple[list[dict], str]
             scored = evaluate([EvalObject(pair.pred_id, pair.class_name, mesh)], [g]).pairs
             row[stage] = {'centre_cm': 100 * float(np.linalg.norm(mesh.bounds.mean(0)[:2] - centre[:2])),
                           'f1': scored[0].f1 if scored else 0.0, 'comp': scored[0].comp if scored else 0.0}
+        if oracle:
+            row['oracle'] = oracle_f1(result.estimates[pair.pred_id].mesh_world, g.mesh)
         rows.append(row)
     missed = [truth[i].class_name for i in report.unmatched_gt]
     line = (f'{Path(bag).name}: {len(report.pairs)}/{len(gt)} found, {len(report.unmatched_pred)} FP, '
@@ -70,8 +98,11 @@ def object_line(row: dict) -> str:
     def stage(name: str) -> str:
         s = row.get(name)
         return f'{name} -' if s is None else f"{name} c {s['centre_cm']:5.1f} F1 {s['f1']:5.1f} COMP {s['comp']:5.1f}"
-    return (f"  {row['object']:3d} {row['class'][:12]:12s} assoc {row['assoc_cm']:5.1f} dz {row['assoc_dz_cm']:5.1f} | "
+    line = (f"  {row['object']:3d} {row['class'][:12]:12s} assoc {row['assoc_cm']:5.1f} dz {row['assoc_dz_cm']:5.1f} | "
             + ' | '.join(stage(s) for s in STAGES))
+    if 'oracle' in row:
+        line += ' | final F1 ' + ' '.join(f"{k} {row['oracle'][k]:5.1f}" for k in ORACLES)
+    return line
 
 
 def pooled_lines(rows: list[dict]) -> list[str]:
@@ -84,6 +115,10 @@ def pooled_lines(rows: list[dict]) -> list[str]:
                 lines.append(f'{cls:12s} {name:6s} n {len(got):3d}  F1 {np.mean([g["f1"] for g in got]):5.1f}  '
                              f'COMP {np.mean([g["comp"] for g in got]):5.1f}  '
                              f'median centre {np.median([g["centre_cm"] for g in got]):5.1f} cm')
+        oracles = [r['oracle'] for r in of_class if 'oracle' in r]
+        if oracles:
+            lines.append(f'{cls:12s} final  n {len(oracles):3d}  mean F1 ' + ', '.join(
+                f'{k} {np.mean([o[k] for o in oracles]):5.1f}' for k in ORACLES))
     return lines
 
 
@@ -92,11 +127,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('bags', nargs='+')
     parser.add_argument('--params', action='append', default=[], help='parameter YAML (repeatable)')
     parser.add_argument('--json', help='write the per-object rows here')
+    parser.add_argument('--oracle', action='store_true',
+                        help='also score each final mesh after ground-truth corrections (centred, turned, scaled)')
     args = parser.parse_args(argv)
     config = PipelineConfig.from_params_files(args.params) if args.params else None
     rows: list[dict] = []
     for bag in args.bags:
-        bag_rows, line = score_bag(bag, config)
+        bag_rows, line = score_bag(bag, config, args.oracle)
         print(line, flush=True)
         for row in bag_rows:
             print(object_line(row), flush=True)

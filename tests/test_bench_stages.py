@@ -28,3 +28,25 @@ def test_every_stage_of_the_orbit_bags_object_is_scored(capsys):
     assert 'fused c' in text and 'dense c' in text
     (pooled,) = [p for p in bench.pooled_lines(rows) if ' dense ' in p]
     assert pooled.split()[0] == row['class'].split()[0] and 'n   1' in pooled
+
+
+def test_the_oracle_scores_undo_a_shift_a_quarter_turn_and_a_scale():
+    import numpy as np
+    import trimesh
+    bench = _bench()
+    # an L of two boxes (no quarter-turn symmetry), standing on the floor
+    truth = trimesh.util.concatenate([trimesh.creation.box((0.6, 0.2, 0.8)),
+                                      trimesh.creation.box((0.2, 0.5, 0.8))])
+    truth.apply_translation([1.0, 2.0, 0.4 - truth.bounds[0, 2]])
+    assert bench.oracle_f1(truth, truth)['as_is'] == 100.0
+    shifted = truth.copy().apply_translation([0.25, 0.0, 0.0])
+    got = bench.oracle_f1(shifted, truth)
+    assert got['as_is'] < 70 and got['centred'] == 100.0
+    centre = truth.bounds.mean(0)
+    turned = truth.copy().apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 0, 1], centre))
+    got = bench.oracle_f1(turned, truth)
+    assert got['centred'] < 90 and got['turned'] > 99.9
+    bottom = [centre[0], centre[1], truth.bounds[0, 2]]
+    grown = truth.copy().apply_transform(trimesh.transformations.scale_matrix(bench.ORACLE_SCALES[-1], bottom))
+    got = bench.oracle_f1(grown, truth)
+    assert got['centred'] < 90 and got['scaled'] > 99.9
