@@ -288,11 +288,13 @@ def mesh_to_marker(vertices: np.ndarray, faces: np.ndarray, ns: str, marker_id: 
     return with_points(*mesh_marker_parts(vertices, faces, ns, marker_id, stamp_ns, frame_id, rgba))
 
 
-def marker_to_mesh(marker: Marker) -> tuple[np.ndarray, np.ndarray]:
-    """TRIANGLE_LIST marker -> (vertices (3F, 3) in the marker's frame after pose and scale, faces (F, 3))."""
+def marker_to_mesh(marker: Marker, points: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """TRIANGLE_LIST marker -> (vertices (3F, 3) in the marker's frame after pose and scale, faces (F, 3)).
+    points: (3F, 3) in place of the marker's own (as `marker_wire.read_marker_array` gives them)."""
     if marker.type != Marker.TRIANGLE_LIST:
         raise ConversionError(f'marker {marker.ns}/{marker.id} is type {marker.type}, expected TRIANGLE_LIST')
-    pts = np.array([[p.x, p.y, p.z] for p in marker.points], dtype=np.float64).reshape(-1, 3)
+    pts = np.array([[p.x, p.y, p.z] for p in marker.points] if points is None else points,
+                   dtype=np.float64).reshape(-1, 3)
     if len(pts) % 3:
         raise ConversionError(f'marker {marker.ns}/{marker.id} has {len(pts)} points, not a multiple of 3')
     pts = pts * np.array([marker.scale.x, marker.scale.y, marker.scale.z])

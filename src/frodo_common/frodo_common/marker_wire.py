@@ -1,11 +1,12 @@
-"""A visualization_msgs/MarkerArray serialised straight from numpy: the object map's meshes without one Python
-`Point` per vertex (no ROS imports beyond the message types).
+"""A visualization_msgs/MarkerArray serialised straight from numpy, and read back into numpy: the object map's
+meshes without one Python `Point` per vertex (no ROS imports beyond the message types).
 
 Why: `/frodo/objects` carries every object's mesh in every message (CONTRACT.md), and the optimiser republishes
 it after each stage of each object. Through rclpy, a mesh of 20,000 triangles became 60,000 `Point` objects
 (~0.23 s) and each message was converted to C again on publishing (~0.08 s per such mesh): on the demo walk
-about 6 s of the optimiser thread went to this, between stages. Written here, the points are one
-`ndarray.tobytes()`.
+about 6 s of the optimiser thread went to this, between stages, and a listener turning each map back into
+Point objects (the Rerun viewer node) spent ~8 s of CPU per demo run on it, on the optimiser's cores. Written
+here, the points are one `ndarray.tobytes()`, and read, one `np.frombuffer`.
 
 The encoding is the ROS 2 wire format of the message (OMG CDR, XCDR1, little-endian): a 4-byte encapsulation
 header, then every field in declaration order at an offset (counted after the header) aligned to its primitive
@@ -22,7 +23,8 @@ from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
-from visualization_msgs.msg import Marker
+from std_msgs.msg import ColorRGBA
+from visualization_msgs.msg import Marker, UVCoordinate
 
 from frodo_common.conversions import ns_to_stamp, with_points
 
@@ -113,6 +115,78 @@ def serialize_marker_array(markers: Sequence[Marker | tuple[Marker, np.ndarray]]
     return w.getvalue()
 
 
+class _CdrReader:
+    """Reads CDR-encoded values written as `_CdrWriter` writes them (little-endian only)."""
+
+    def __init__(self, data: bytes) -> None:
+        if len(data) < 4 or data[:2] != CDR_LE_HEADER[:2]:
+            raise ValueError(f'not a little-endian CDR message (header {bytes(data[:4]).hex()})')
+        self.view = memoryview(data)[4:]
+        self.offset = 0
+
+    def _take(self, size: int, align: int) -> memoryview:
+        self.offset += -self.offset % align
+        if self.offset + size > len(self.view):
+            raise ValueError(f'message truncated at byte {self.offset + 4} (needs {size} more)')
+        chunk = self.view[self.offset:self.offset + size]
+        self.offset += size
+        return chunk
+
+    def unpack(self, fmt: str, align: int) -> tuple:
+        return struct.unpack('<' + fmt, self._take(struct.calcsize('<' + fmt), align))
+
+    def count(self) -> int:
+        return self.unpack('I', 4)[0]
+
+    def string(self) -> str:
+        data = bytes(self._take(self.count(), 1))
+        return data[:-1].decode('utf-8') if data else ''
+
+    def octets(self) -> list[int]:
+        return list(bytes(self._take(self.count(), 1)))
+
+    def header(self, header) -> None:
+        header.stamp.sec, header.stamp.nanosec = self.unpack('iI', 4)
+        header.frame_id = self.string()
+
+
+def _read_marker(r: _CdrReader) -> tuple[Marker, np.ndarray]:
+    """One Marker (Jazzy's definition), its points as an array (N, 3) instead of Point messages."""
+    m = Marker()
+    r.header(m.header)
+    m.ns = r.string()
+    m.id, m.type, m.action = r.unpack('iii', 4)
+    p, q = m.pose.position, m.pose.orientation
+    p.x, p.y, p.z, q.x, q.y, q.z, q.w = r.unpack('7d', 8)
+    m.scale.x, m.scale.y, m.scale.z = r.unpack('3d', 8)
+    m.color.r, m.color.g, m.color.b, m.color.a = r.unpack('4f', 4)
+    m.lifetime.sec, m.lifetime.nanosec = r.unpack('iI', 4)
+    m.frame_locked = r.unpack('?', 1)[0]
+    n = r.count()
+    points = np.frombuffer(r._take(24 * n, 8), dtype='<f8').reshape(n, 3).astype(np.float64) if n \
+        else np.zeros((0, 3))
+    m.colors = [ColorRGBA(r=c[0], g=c[1], b=c[2], a=c[3]) for c in (r.unpack('4f', 4) for _ in range(r.count()))]
+    m.texture_resource = r.string()
+    r.header(m.texture.header)
+    m.texture.format = r.string()
+    m.texture.data = r.octets()
+    m.uv_coordinates = [UVCoordinate(u=u, v=v) for u, v in (r.unpack('2f', 4) for _ in range(r.count()))]
+    m.text = r.string()
+    m.mesh_resource = r.string()
+    m.mesh_file.filename = r.string()
+    m.mesh_file.data = r.octets()
+    m.mesh_use_embedded_materials = r.unpack('?', 1)[0]
+    return m, points
+
+
+def read_marker_array(data: bytes) -> list[tuple[Marker, np.ndarray]]:
+    """The markers of a serialised MarkerArray (a `raw=True` subscription's message), each with its points as an
+    array (N, 3) and its own `points` left empty: no Point message per vertex. Raises ValueError on a message
+    that is not a little-endian CDR MarkerArray or is cut short."""
+    r = _CdrReader(data)
+    return [_read_marker(r) for _ in range(r.count())]
+
+
 @dataclass(eq=False)
 class MeshMarker:
     """A TRIANGLE_LIST marker with its points kept as an array (`conversions.mesh_marker_parts`).
@@ -145,8 +219,7 @@ def matches_rmw() -> bool:
     sequences, a mesh after a delete)."""
     from geometry_msgs.msg import Point
     from rclpy.serialization import deserialize_message, serialize_message
-    from std_msgs.msg import ColorRGBA
-    from visualization_msgs.msg import MarkerArray, UVCoordinate
+    from visualization_msgs.msg import MarkerArray
 
     mesh = Marker(ns='dining table', id=7, type=Marker.TRIANGLE_LIST, action=Marker.ADD)
     mesh.header.frame_id, mesh.header.stamp.sec, mesh.header.stamp.nanosec = 'map', 12, 345

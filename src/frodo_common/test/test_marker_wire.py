@@ -1,13 +1,14 @@
 """The MarkerArray written from numpy (`marker_wire`) is what the RMW writes: the same length, and read back by
 the RMW the same message, for markers of every field kind and alignment (seeded random markers)."""
 import numpy as np
+import pytest
 from geometry_msgs.msg import Point
 from rclpy.serialization import deserialize_message, serialize_message
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray, UVCoordinate
 
 from frodo_common import conversions as conv
-from frodo_common.marker_wire import MeshMarker, matches_rmw, serialize_marker_array
+from frodo_common.marker_wire import MeshMarker, matches_rmw, read_marker_array, serialize_marker_array
 
 
 def _random_marker(rng: np.random.Generator) -> Marker:
@@ -61,3 +62,20 @@ def test_mesh_markers_with_array_points_equal_their_messages():
                                                         for m in order]))
         assert len(ours) == len(theirs) and _read(ours) == _read(theirs)
     assert mesh.message() is mesh.message()            # the Point messages are built once
+
+
+def test_serialised_arrays_are_read_back_with_their_points_as_arrays():
+    rng = np.random.default_rng(11)
+    for _ in range(40):
+        markers = [_random_marker(rng) for _ in range(rng.integers(0, 5))]
+        read = read_marker_array(serialize_message(MarkerArray(markers=markers)))   # the RMW's own bytes
+        assert len(read) == len(markers)
+        for (marker, points), original in zip(read, markers):
+            expected = np.array([(p.x, p.y, p.z) for p in original.points]).reshape(-1, 3)
+            assert np.array_equal(points, expected)
+            assert marker == _read(serialize_message(MarkerArray(markers=[conv.with_points(original, np.zeros(
+                (0, 3)))]))).markers[0]      # every other field, float32 colours as on the wire
+    data = serialize_marker_array([_random_marker(rng)])
+    for cut in (2, 9, len(data) - 1):
+        with pytest.raises(ValueError):
+            read_marker_array(data[:cut])
