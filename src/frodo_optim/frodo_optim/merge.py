@@ -19,6 +19,9 @@ restart (listeners keep the last complete map, only a listener joining in that w
 restarted worker 0 has its own share from its saved map and, from the latched share topics, every other
 worker's last share, and publishes the complete map again.
 
+Markers are held as `marker_wire` items: a Marker, or (marker, points (N, 3)) for a mesh whose points stay an
+array (shares are read raw and the merged map is written from arrays; no Point message per vertex).
+
 Each worker's share replaces its previous one as a whole (keyed by worker, then by (class, object id)), so a
 worker that restarted without the objects it had (no `--resume`) retracts them with its first share; the
 merged map's own DELETEs (for every (class, id) it published and no longer has) come from `Retractions`, as a
@@ -26,8 +29,10 @@ lone optimiser's do.
 """
 from __future__ import annotations
 
+from typing import Sequence, Union
+
 import numpy as np
-from visualization_msgs.msg import Marker, MarkerArray
+from visualization_msgs.msg import Marker
 
 from frodo_common import conversions as conv
 
@@ -38,6 +43,12 @@ TABLE_KIND = 'object_states'
 SHARE_KINDS = MARKER_KINDS + (TABLE_KIND,)
 
 MarkerKey = tuple[str, int]   # (ns = class name, object id): a marker's identity for RViz and the contract
+MarkerItem = Union[Marker, tuple[Marker, np.ndarray]]   # a marker, or a marker and its points as an array
+
+
+def item_marker(item: MarkerItem) -> Marker:
+    """The Marker of a marker item."""
+    return item[0] if isinstance(item, tuple) else item
 
 
 class Retractions:
@@ -69,8 +80,8 @@ class MapMerger:
         if worker_count < 1:
             raise ValueError(f'worker_count must be at least 1, got {worker_count}')
         self.worker_count = worker_count
-        # kind -> per worker {(class, id): its latest ADD marker}
-        self.markers: dict[str, list[dict[MarkerKey, Marker]]] = {
+        # kind -> per worker {(class, id): its latest ADD marker item}
+        self.markers: dict[str, list[dict[MarkerKey, MarkerItem]]] = {
             kind: [{} for _ in range(worker_count)] for kind in MARKER_KINDS}
         self.tables: list[np.ndarray | None] = [None] * worker_count
         self.heard: set[int] = set()
@@ -80,27 +91,28 @@ class MapMerger:
         if not 0 <= worker < self.worker_count:
             raise ValueError(f'worker {worker} is not in 0..{self.worker_count - 1}')
 
-    def put_markers(self, kind: str, worker: int, array: MarkerArray) -> None:
-        """A worker's share of `kind` ('objects' or 'boxes') replaces its previous one (its ADD markers; its
-        DELETEs are of objects it no longer has, which the replacement drops already)."""
+    def put_markers(self, kind: str, worker: int, items: Sequence[MarkerItem]) -> None:
+        """A worker's share of `kind` ('objects' or 'boxes'; its markers as items) replaces its previous one (its
+        ADD markers; its DELETEs are of objects it no longer has, which the replacement drops already)."""
         self._check_worker(worker)
         if kind not in MARKER_KINDS:
             raise ValueError(f'kind must be one of {MARKER_KINDS}, got {kind!r}')
-        if any(m.action == Marker.DELETEALL for m in array.markers):
+        markers = [item_marker(item) for item in items]
+        if any(m.action == Marker.DELETEALL for m in markers):
             raise ValueError(f'worker {worker} sent DELETEALL on its {kind} share (a share holds ADDs and DELETEs)')
-        self.markers[kind][worker] = {(m.ns, m.id): m for m in array.markers if m.action == Marker.ADD}
+        self.markers[kind][worker] = {(m.ns, m.id): item for m, item in zip(markers, items) if m.action == Marker.ADD}
         self.heard.add(worker)
 
-    def merged_markers(self, kind: str, stamp_ns: int, frame: str) -> MarkerArray:
-        """The complete map of `kind`: a DELETE (stamped `stamp_ns`) for every (class, id) published before and
-        gone now, then every worker's ADD markers by (id, class). Call once per message published."""
-        merged: dict[MarkerKey, Marker] = {}
+    def merged_markers(self, kind: str, stamp_ns: int, frame: str) -> list[MarkerItem]:
+        """The complete map of `kind`, as items: a DELETE (stamped `stamp_ns`) for every (class, id) published
+        before and gone now, then every worker's ADD markers by (id, class). Call once per message published."""
+        merged: dict[MarkerKey, MarkerItem] = {}
         for share in self.markers[kind]:
             merged.update(share)
-        array = MarkerArray(markers=[conv.delete_marker(ns, oid, stamp_ns, frame)
-                                     for ns, oid in self.retractions[kind].update(set(merged))])
-        array.markers.extend(merged[key] for key in sorted(merged, key=lambda key: (key[1], key[0])))
-        return array
+        items: list[MarkerItem] = [conv.delete_marker(ns, oid, stamp_ns, frame)
+                                   for ns, oid in self.retractions[kind].update(set(merged))]
+        items.extend(merged[key] for key in sorted(merged, key=lambda key: (key[1], key[0])))
+        return items
 
     def put_table(self, worker: int, table: np.ndarray) -> None:
         """A worker's `/frodo/object_states` table (structured array with `object_id`) replaces its previous one."""

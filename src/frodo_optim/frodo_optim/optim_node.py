@@ -48,10 +48,10 @@ from frodo_common.frame_cache import FrameCache
 from frodo_common.params import ParamSpec
 from frodo_common.torch_threads import call_in_passing_thread
 from frodo_common.frames import depth_to_metres
-from frodo_common.marker_wire import MeshMarker, matches_rmw, serialize_marker_array
+from frodo_common.marker_wire import MeshMarker, matches_rmw, read_marker_array, serialize_marker_array
 from frodo_optim.config import PARAMS as OPTIM_PARAMS, optim_config
 from frodo_optim.core import ObjectEstimate
-from frodo_optim.merge import TABLE_KIND, MapMerger, Retractions
+from frodo_optim.merge import TABLE_KIND, MapMerger, Retractions, item_marker
 from frodo_optim.object_map import MapObject, MapWriter, load_maps, map_dirs, worker_map_dir
 from frodo_optim.reconstructor import ObjectInput, ObjectReconstructor, Scene, StageOutcome
 from frodo_optim.scheduling import Job, StageQueue
@@ -92,11 +92,6 @@ class OptimNode(FrodoNode):
         self.tracks: dict[int, tuple[str, tuple]] = {}             # id -> (class, (centre, size, yaw))
         self.codes: dict[int, tuple[int, int, np.ndarray]] = {}     # id -> (category, views, code)
         self.mesh_markers: dict[int, MeshMarker] = {}                # id -> its estimate's mesh marker
-        # The map is published serialised from arrays (marker_wire) where this RMW reads those bytes back right.
-        self.map_wire = matches_rmw()
-        if not self.map_wire:
-            self.get_logger().warning('this RMW writes visualization_msgs/MarkerArray differently from '
-                                      'frodo_common.marker_wire: the map is published as messages (slower)')
         self.retractions = Retractions()                            # published once, now gone: DELETE every time
         self.resumed: dict[int, int] = {}                           # id -> views of its saved estimate (not re-run yet)
         self.queue = StageQueue()                                   # breadth first: every fused, then sparse, then dense
@@ -123,14 +118,21 @@ class OptimNode(FrodoNode):
         self.states_pub = self.create_publisher(
             PointCloud2, topics.object_share_topic(TABLE_KIND, self.worker_index) if sharing else OBJECT_STATES,
             topics.LATCHED_QOS)
+        # The map is published serialised from arrays (marker_wire) where this RMW reads those bytes back right.
+        self.map_wire = matches_rmw()
+        if not self.map_wire:
+            self.get_logger().warning('this RMW writes visualization_msgs/MarkerArray differently from '
+                                      'frodo_common.marker_wire: the map is published as messages (slower)')
         self.merger = MapMerger(self.worker_count) if self.worker_count > 1 and not sharing else None
         self.merge_lock = threading.Lock()   # own share (worker thread) and the others' (executor) are merged
         if self.merger is not None:
             for k in range(1, self.worker_count):
                 for msg_type, kind in ((MarkerArray, 'objects'), (MarkerArray, 'boxes'), (PointCloud2, TABLE_KIND)):
+                    # meshes read raw, their points as arrays (marker_wire), where this RMW's bytes allow
                     self.create_subscription(msg_type, topics.object_share_topic(kind, k),
                                              self.guarded(lambda m, kind=kind, k=k: self._on_share(kind, k, m),
-                                                          f'worker_{k}_{kind}'), topics.LATCHED_QOS)
+                                                          f'worker_{k}_{kind}'), topics.LATCHED_QOS,
+                                             raw=kind == 'objects' and self.map_wire)
         self.map_lock = threading.Lock()
         self.map_writer = (MapWriter(worker_map_dir(self.params['map_dir'], self.worker_index, self.worker_count),
                                      (self.worker_index, self.worker_count)) if self.params['map_dir'] else None)
@@ -410,10 +412,12 @@ class OptimNode(FrodoNode):
         return self.mesh_markers[est.object_id]
 
     def _map_message(self, markers: list) -> MarkerArray | bytes:
-        """The MarkerArray of `markers` (Markers and MeshMarkers), serialised from the arrays where the RMW allows."""
+        """The MarkerArray of `markers` (Markers, MeshMarkers and (marker, points) items), serialised from the
+        arrays where the RMW allows."""
+        items = [m.parts() if isinstance(m, MeshMarker) else m for m in markers]
         if self.map_wire:
-            return serialize_marker_array([m.parts() if isinstance(m, MeshMarker) else m for m in markers])
-        return MarkerArray(markers=[m.message() if isinstance(m, MeshMarker) else m for m in markers])
+            return serialize_marker_array(items)
+        return MarkerArray(markers=[conv.with_points(*m) if isinstance(m, tuple) else m for m in items])
 
     def _map_stamp(self, estimates) -> int:
         """Data time of a map message (its DELETEs, the state table): the newest stamp received or estimated."""
@@ -447,9 +451,8 @@ class OptimNode(FrodoNode):
             self.states_pub.publish(conv.table_to_cloud(states, now, frame))
         else:
             with self.merge_lock:
-                self.merger.put_markers('objects', 0, MarkerArray(
-                    markers=[m.message() if isinstance(m, MeshMarker) else m for m in objects]))
-                self.merger.put_markers('boxes', 0, boxes)
+                self.merger.put_markers('objects', 0, [m.parts() if isinstance(m, MeshMarker) else m for m in objects])
+                self.merger.put_markers('boxes', 0, boxes.markers)
                 self.merger.put_table(0, states)
                 for kind in ('objects', 'boxes', TABLE_KIND):
                     self._publish_merged(kind)
@@ -461,14 +464,16 @@ class OptimNode(FrodoNode):
                 self.report_error('map_dir', err)
 
     def _on_share(self, kind: str, worker: int, msg) -> None:
-        """Worker 0: another worker's share of `kind`; the merged map of that kind is published again."""
+        """Worker 0: another worker's share of `kind` (a message, or the serialised objects share); the merged map
+        of that kind is published again."""
         self.count('shares_received')
         table = conv.cloud_to_table(msg) if kind == TABLE_KIND else None
-        stamps = [msg.header.stamp] if table is not None else [m.header.stamp for m in msg.markers]
+        items = [] if table is not None else read_marker_array(msg) if isinstance(msg, bytes) else msg.markers
+        stamps = [msg.header.stamp] if table is not None else [item_marker(m).header.stamp for m in items]
         self._saw(max((conv.stamp_to_ns(s) for s in stamps), default=0))
         with self.merge_lock:
             if table is None:
-                self.merger.put_markers(kind, worker, msg)
+                self.merger.put_markers(kind, worker, items)
             else:
                 self.merger.put_table(worker, table)
             self._publish_merged(kind)
@@ -481,10 +486,12 @@ class OptimNode(FrodoNode):
             if table is not None:
                 self.states_pub.publish(conv.table_to_cloud(table, now, frame))
         else:
-            (self.objects_pub if kind == 'objects' else self.boxes_pub).publish(
-                self.merger.merged_markers(kind, now, frame))
+            items = self.merger.merged_markers(kind, now, frame)
             if kind == 'objects':
+                self.objects_pub.publish(self._map_message(items))
                 self.count('merged_maps_published')
+            else:
+                self.boxes_pub.publish(MarkerArray(markers=items))
 
     # ------------------------------------------------------------ object map on disk
     def save_map(self) -> str:

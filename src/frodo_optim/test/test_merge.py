@@ -1,10 +1,10 @@
 """MapMerger / Retractions (frodo_optim.merge): the complete map from the optimiser workers' shares."""
 import numpy as np
 import pytest
-from visualization_msgs.msg import Marker, MarkerArray
+from visualization_msgs.msg import Marker
 
 from frodo_common import conversions as conv
-from frodo_optim.merge import MapMerger, Retractions
+from frodo_optim.merge import MapMerger, Retractions, item_marker
 from frodo_optim.states import STATES_DTYPE
 
 
@@ -13,11 +13,11 @@ def _share(objects, deleted=()):
     markers = [conv.delete_marker(ns, oid, 1, 'world') for ns, oid in deleted]
     markers += [conv.box_to_marker(np.array([oid, 0.0, 0.0]), np.ones(3), 0.0, ns, oid, 1, 'world')
                 for ns, oid in objects]
-    return MarkerArray(markers=markers)
+    return markers
 
 
-def _actions(array):
-    return [(m.action, m.ns, m.id) for m in array.markers]
+def _actions(items):
+    return [(m.action, m.ns, m.id) for m in map(item_marker, items)]
 
 
 def test_retractions_repeat_every_dropped_key_until_it_comes_back():
@@ -35,28 +35,28 @@ def test_the_merged_map_holds_every_workers_share_and_replaces_a_share_as_a_whol
     assert _actions(merger.merged_markers('objects', 5, 'world')) == [(Marker.ADD, 'chair', 1), (Marker.ADD, 'chair', 4)]
     merger.put_markers('objects', 0, _share([('chair', 3), ('dining table', 0)]))
     merger.put_markers('objects', 2, _share([('chair', 2)]))
-    assert [m.id for m in merger.merged_markers('objects', 5, 'world').markers] == [0, 1, 2, 3, 4]
+    assert [item_marker(m).id for m in merger.merged_markers('objects', 5, 'world')] == [0, 1, 2, 3, 4]
     assert merger.heard == {0, 1, 2}
     # Worker 1 drops 4 and 1 becomes a table; worker 2 restarted without its objects (an empty share).
     merger.put_markers('objects', 1, _share([('dining table', 1)], deleted=[('chair', 1), ('chair', 4)]))
-    merger.put_markers('objects', 2, MarkerArray())
+    merger.put_markers('objects', 2, [])
     merged = merger.merged_markers('objects', 7, 'world')
     assert _actions(merged) == [(Marker.DELETE, 'chair', 1), (Marker.DELETE, 'chair', 2), (Marker.DELETE, 'chair', 4),
                                 (Marker.ADD, 'dining table', 0), (Marker.ADD, 'dining table', 1),
                                 (Marker.ADD, 'chair', 3)]
-    assert all(conv.stamp_to_ns(m.header.stamp) == 7 for m in merged.markers if m.action == Marker.DELETE)
+    assert all(conv.stamp_to_ns(m.header.stamp) == 7 for m in merged if m.action == Marker.DELETE)
     # The boxes are merged on their own.
-    assert merger.merged_markers('boxes', 7, 'world').markers == []
+    assert merger.merged_markers('boxes', 7, 'world') == []
 
 
 def test_bad_shares_are_refused_with_a_clear_message():
     merger = MapMerger(2)
     with pytest.raises(ValueError, match='not in 0..1'):
-        merger.put_markers('objects', 2, MarkerArray())
+        merger.put_markers('objects', 2, [])
     with pytest.raises(ValueError, match='DELETEALL'):
-        merger.put_markers('objects', 1, MarkerArray(markers=[Marker(action=Marker.DELETEALL)]))
+        merger.put_markers('objects', 1, [Marker(action=Marker.DELETEALL)])
     with pytest.raises(ValueError, match='kind'):
-        merger.put_markers('tracks', 1, MarkerArray())
+        merger.put_markers('tracks', 1, [])
     with pytest.raises(ValueError, match='at least 1'):
         MapMerger(0)
 
@@ -79,3 +79,11 @@ def test_state_tables_merge_by_object_id_and_a_share_replaces_the_workers_rows()
         merger.put_table(1, np.zeros(1, dtype=[('object_id', '<i4')]))
     with pytest.raises(ValueError, match='without object_id'):
         merger.put_table(1, np.zeros(1, dtype=[('id', '<i4')]))
+
+
+def test_a_mesh_shared_with_its_points_as_an_array_is_merged_as_it_came():
+    merger = MapMerger(2)
+    mesh = conv.mesh_marker_parts(np.eye(3), [[0, 1, 2]], 'chair', 5, 1, 'world')   # (marker, points (3, 3))
+    merger.put_markers('objects', 1, [conv.delete_marker('chair', 2, 1, 'world'), mesh])
+    (item,) = merger.merged_markers('objects', 2, 'world')
+    assert item is mesh

@@ -114,6 +114,11 @@ def test_two_workers_split_the_objects_and_a_depth_1_listener_gets_the_complete_
             assert sorted(w.estimates) == [i for i in (1, 2, 3, 4, 5) if i % 2 == k]   # its share, nothing else
             assert sorted(w.tracks) == sorted(w.estimates) and probe.status(f'optim_node_{k}')['worker'] == f'{k}/2'
         assert probe.status('optim_node_0')['shares_merged'] == '2/2'
+        # Each mesh of the merged map is its worker's estimate (worker 1's came through its serialised share).
+        for oid in (2, 3):
+            est = workers[oid % 2].estimates[oid]
+            corners = est.mesh_world.vertices[est.mesh_world.faces].reshape(-1, 3)
+            assert np.array_equal(conv.marker_to_mesh(probe.latest[oid])[0], corners)
         # One writer of the contract topics (the merger, worker 0); worker 1 publishes its share internally.
         for topic in (topics.OBJECTS, topics.BOXES, OBJECT_STATES):
             assert [i.node_name for i in probe.node.get_publishers_info_by_topic(topic)] == ['optim_node_0'], topic
