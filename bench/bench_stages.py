@@ -33,7 +33,8 @@ from pathlib import Path                                      # noqa: E402
 import numpy as np                                            # noqa: E402
 
 from frodo_bringup.pipeline import PipelineConfig, reconstruct   # noqa: E402
-from frodo_common.evaluation import EvalObject, evaluate, load_ground_truth, point_metrics, sample_surface   # noqa: E402
+from frodo_common.evaluation import (EvalObject, evaluate, load_ground_truth, point_metrics,   # noqa: E402
+                                     sample_surface)
 
 STAGES = ('fused', 'sparse', 'dense')
 ORACLES = ('as_is', 'centred', 'turned', 'scaled')

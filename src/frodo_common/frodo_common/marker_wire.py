@@ -19,14 +19,14 @@ caller publishes messages instead.
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, UVCoordinate
 
-from frodo_common.conversions import ns_to_stamp, with_points
+from frodo_common.conversions import ns_to_stamp
 
 CDR_LE_HEADER = b'\x00\x01\x00\x00'      # encapsulation: plain CDR, little-endian, no options
 
@@ -195,22 +195,13 @@ class MeshMarker:
     source: object
     marker: Marker
     points: np.ndarray
-    _message: Marker | None = field(default=None, repr=False)
 
     def restamp(self, stamp_ns: int) -> None:
         self.marker.header.stamp = ns_to_stamp(stamp_ns)
-        if self._message is not None:
-            self._message.header.stamp = ns_to_stamp(stamp_ns)
 
     def parts(self) -> tuple[Marker, np.ndarray]:
         """(marker, points) for `serialize_marker_array`."""
         return self.marker, self.points
-
-    def message(self) -> Marker:
-        """The complete Marker (its Point messages built on the first call, then kept)."""
-        if self._message is None:
-            self._message = with_points(self.marker, self.points)
-        return self._message
 
 
 def matches_rmw() -> bool:
