@@ -132,6 +132,10 @@ class _CdrReader:
         self.offset += size
         return chunk
 
+    def doubles(self, rows: int) -> np.ndarray:
+        """`rows` x 3 float64 values (a sequence of Points' data), as an array of its own."""
+        return np.frombuffer(self._take(24 * rows, 8), dtype='<f8').reshape(rows, 3).astype(np.float64)
+
     def unpack(self, fmt: str, align: int) -> tuple:
         return struct.unpack('<' + fmt, self._take(struct.calcsize('<' + fmt), align))
 
@@ -163,8 +167,7 @@ def _read_marker(r: _CdrReader) -> tuple[Marker, np.ndarray]:
     m.lifetime.sec, m.lifetime.nanosec = r.unpack('iI', 4)
     m.frame_locked = r.unpack('?', 1)[0]
     n = r.count()
-    points = np.frombuffer(r._take(24 * n, 8), dtype='<f8').reshape(n, 3).astype(np.float64) if n \
-        else np.zeros((0, 3))
+    points = r.doubles(n) if n else np.zeros((0, 3))      # no alignment padding before an empty sequence
     m.colors = [ColorRGBA(r=c[0], g=c[1], b=c[2], a=c[3]) for c in (r.unpack('4f', 4) for _ in range(r.count()))]
     m.texture_resource = r.string()
     r.header(m.texture.header)
