@@ -20,6 +20,7 @@ from frodo_bringup.testing import stub, write_contract_bag
 from frodo_common import conversions as conv
 from frodo_common import topics
 
+# The stand-in optimiser is one node (it knows no worker split): optim_workers=1 in every run below.
 STUB_GRAPH = (stub('detection_node'), stub('optim_node'))
 
 
@@ -36,7 +37,7 @@ def test_run_writes_objects_meshes_and_recording(tmp_path):
     write_contract_bag(tmp_path / 'in.mcap', frames=10, period=0.05, instances=True)
     output = io.StringIO()
     result = run_bag(tmp_path / 'in.mcap', tmp_path / 'out', [_params(tmp_path)], timeout=15, rate=0,
-                     viewer='rrd', nodes=STUB_GRAPH, startup_timeout=30, output=output, progress=False)
+                     viewer='rrd', nodes=STUB_GRAPH, startup_timeout=30, output=output, progress=False, optim_workers=1)
     assert result.exit_code == EXIT_OK, output.getvalue()
     assert result.done and result.play.total == 41  # 4 topics x 10 frames + ground truth for the viewer
     document = json.loads((tmp_path / 'out' / 'objects.json').read_text())
@@ -56,7 +57,7 @@ def test_run_reports_a_crashed_node(tmp_path):
     write_contract_bag(tmp_path / 'in.mcap', frames=200, period=0.05, instances=True)  # 10 s of bag at rate 1
     output = io.StringIO()
     result = run_bag(tmp_path / 'in.mcap', tmp_path / 'out', [_params(tmp_path, crash_after=1.0)], timeout=5,
-                     nodes=STUB_GRAPH, startup_timeout=20, output=output, progress=False)
+                     nodes=STUB_GRAPH, startup_timeout=20, output=output, progress=False, optim_workers=1)
     assert result.exit_code == EXIT_GRAPH_FAILED, output.getvalue()
     assert [f.name for f in result.failures] == ['optim_node'] and result.failures[0].returncode == 3
     assert 'node failure: optim_node exited with code 3' in output.getvalue()
@@ -76,7 +77,7 @@ def test_run_ignores_and_names_another_graphs_diagnostics(tmp_path):
         publisher = other.node.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
         other.node.create_timer(0.1, lambda: publisher.publish(busy))
         result = run_bag(tmp_path / 'in.mcap', tmp_path / 'out', [_params(tmp_path)], timeout=15, rate=0,
-                         nodes=STUB_GRAPH, startup_timeout=30, output=output, progress=False)
+                         nodes=STUB_GRAPH, startup_timeout=30, output=output, progress=False, optim_workers=1)
     assert result.exit_code == EXIT_OK and result.done, output.getvalue()
     assert result.foreign == [('optim_node', '999999')]
     text = output.getvalue()

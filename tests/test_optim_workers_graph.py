@@ -21,8 +21,8 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
-from frodo_bringup.graph import (NODES, GraphError, is_optimiser, optimiser_workers, ros_parameter_arguments,
-                                 share_file, with_optimiser_parameters)
+from frodo_bringup.graph import (AUTO_OPTIM_WORKERS, NODES, GraphError, is_optimiser, optim_worker_count,
+                                 optimiser_workers, ros_parameter_arguments, share_file, with_optimiser_parameters)
 from frodo_bringup.launcher import Launcher
 from frodo_bringup.player import Player
 from frodo_bringup.readiness import GraphMonitor
@@ -44,10 +44,14 @@ def test_workers_get_unique_names_and_the_optimiser_parameters(tmp_path):
     later.write_text('/optim_node:\n  ros__parameters:\n    prior: furniture\n')
     nodes = with_optimiser_parameters(optimiser_workers(NODES, 3), map_dir='/maps/a', resume=None)
     names = [n.name for n in nodes]
-    assert names == ['detection_node', 'association_node', 'shape_node', 'optim_node_0', 'optim_node_1',
+    assert names == ['detection_node', 'association_node', 'shape_node', 'optim_node', 'optim_node_1',
                      'optim_node_2']
     assert [is_optimiser(n) for n in names] == [False] * 3 + [True] * 3 and not is_optimiser('optim_node_x')
-    assert optimiser_workers(NODES, 1) == NODES
+    assert optimiser_workers(NODES, 1) == optimiser_workers(NODES, '1') == NODES
+    # auto: two workers where this process may use two CPUs or more
+    assert optim_worker_count('auto') == optim_worker_count(None) == min(2, len(os.sched_getaffinity(0)))
+    with pytest.raises(GraphError, match="positive integer or 'auto'"):
+        optimiser_workers(NODES, 'two')
     # each of the 3 workers gets a third of the CPUs as torch threads (at least 1); the other nodes keep theirs
     threads = str(max(1, len(os.sched_getaffinity(0)) // 3))
     assert [dict(n.env).get('OMP_NUM_THREADS') for n in nodes] == [None] * 3 + [threads] * 3
@@ -58,6 +62,9 @@ def test_workers_get_unique_names_and_the_optimiser_parameters(tmp_path):
         '-p', 'dense_enabled:=false', '-p', 'prior:=furniture', '-p', 'worker_index:=1', '-p', 'worker_count:=3',
         '-p', 'map_dir:=/maps/a']
     assert ros_parameter_arguments(nodes[0], [params]) == []
+    # worker 0 keeps the optimiser's name (and so its section of the files), plus its index and count
+    assert ros_parameter_arguments(nodes[3], [params, later]) == [
+        '-p', 'worker_index:=0', '-p', 'worker_count:=3', '-p', 'map_dir:=/maps/a']
     command = Launcher(nodes, [params])._command(nodes[5])
     assert command[command.index('-r') + 1] == '__node:=optim_node_2' and 'worker_index:=2' in command
     assert command.index('--params-file') < command.index('worker_index:=2')   # the worker's own values win
@@ -78,7 +85,14 @@ def test_launch_file_takes_optim_workers():
     assert declared == ['params_file', 'viewer', 'optim_workers']
     function = next(n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == 'optimiser_nodes')
     assert "f'{executable}_{k}'" in ast.unparse(function) and "'worker_index': k" in ast.unparse(function)
-    assert [n.name for n in optimiser_workers(NODES, 2)][-2:] == ['optim_node_0', 'optim_node_1']
+    assert "executable if k == 0" in ast.unparse(function)
+    assert [n.name for n in optimiser_workers(NODES, 2)][-2:] == ['optim_node', 'optim_node_1']
+    default = next(node for node in ast.walk(tree) if isinstance(node, ast.Call)
+                   and getattr(node.func, 'id', '') == 'DeclareLaunchArgument' and node.args[0].value == 'optim_workers')
+    assert next(k.value.value for k in default.keywords if k.arg == 'default_value') == 'auto'
+    auto = next(n.value.value for n in tree.body if isinstance(n, ast.Assign)
+                and getattr(n.targets[0], 'id', '') == 'AUTO_OPTIM_WORKERS')
+    assert auto == AUTO_OPTIM_WORKERS
 
 
 def test_the_run_collector_keeps_the_latest_complete_map():
@@ -93,7 +107,7 @@ def test_the_run_collector_keeps_the_latest_complete_map():
         return MarkerArray(markers=markers), conv.table_to_cloud(table, 1, 'world')
 
     with RosSession('frodo_test_workers_collector') as session:
-        collector = OutputCollector(session.node, ['optim_node_0', 'optim_node_1'])
+        collector = OutputCollector(session.node, ['optim_node', 'optim_node_1'])
         objects = session.node.create_publisher(MarkerArray, topics.OBJECTS, topics.LATCHED_QOS)
         states = session.node.create_publisher(PointCloud2, OBJECT_STATES, topics.LATCHED_QOS)
 
@@ -120,16 +134,16 @@ def test_the_run_collector_knows_which_nodes_are_behind():
     def report(name, **counters):
         return DiagnosticStatus(name=name, values=[KeyValue(key=k, value=str(v)) for k, v in counters.items()])
 
-    names = ['detection_node', 'association_node', 'shape_node', 'optim_node_0', 'optim_node_1']
+    names = ['detection_node', 'association_node', 'shape_node', 'optim_node', 'optim_node_1']
     with RosSession('frodo_test_collector_behind') as session:
-        collector = OutputCollector(session.node, ['optim_node_0', 'optim_node_1'])
+        collector = OutputCollector(session.node, ['optim_node', 'optim_node_1'])
         assert collector.frames_taken(names) is None and collector.behind(names, 40) == []
         diagnostics = session.node.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 50)
         assert wait_until(lambda: diagnostics.get_subscription_count() > 0, 10)
         diagnostics.publish(DiagnosticArray(status=[
             report('detection_node', frames_received=40, frames_published=38),
             report('association_node', frames_received=37), report('shape_node', image_received=39),
-            report('optim_node_0', image_received=40), report('optim_node_1'), report('other_node')]))
+            report('optim_node', image_received=40), report('optim_node_1'), report('other_node')]))
         assert wait_until(lambda: collector.frames_taken(names) == 0, 10)
         assert collector.behind(names, 40) == [('association_node', 37, 38, 'frames_published of detection_node'),
                                                ('shape_node', 39, 40, 'images played'),
@@ -167,9 +181,9 @@ def test_frodo_run_with_two_workers_waits_for_both(tmp_path):
                      nodes=(stub('detection_node'), stub('optim_node')), startup_timeout=30, output=output,
                      progress=False, optim_workers=2)
     assert result.exit_code == EXIT_OK and result.done, output.getvalue()
-    for k in range(2):   # each worker got the optimiser's section (it acts as one) and logs on its own
-        assert (tmp_path / 'out' / 'logs' / f'optim_node_{k}.log').is_file()
-    assert 'started optim_node_0' in output.getvalue() and 'started optim_node_1' in output.getvalue()
+    for name in ('optim_node', 'optim_node_1'):   # each worker got the optimiser's section and logs on its own
+        assert (tmp_path / 'out' / 'logs' / f'{name}.log').is_file()
+    assert 'started optim_node' in output.getvalue() and 'started optim_node_1' in output.getvalue()
     assert [r['id'] for r in json.loads((tmp_path / 'out' / 'objects.json').read_text())['objects']] == [7]
 
 
@@ -221,13 +235,13 @@ def test_two_workers_on_the_demo_bag_share_the_objects_and_a_killed_one_resumes_
 
         # The merger (worker 0) killed: restarted, it has its own share from its saved map and worker 1's from
         # its latched share topics, and publishes the complete map again (frodo_optim.merge).
-        old_pid = launcher.pids['optim_node_0']
+        old_pid = launcher.pids['optim_node']
         os.kill(old_pid, signal.SIGKILL)
-        assert wait_until(lambda: launcher.pids['optim_node_0'] != old_pid and 'optim_node_0' in monitor.up(), 90), lines
+        assert wait_until(lambda: launcher.pids['optim_node'] != old_pid and 'optim_node' in monitor.up(), 90), lines
         after_restart = OutputCollector(session.node, workers)
         assert wait_until(lambda: after_restart.snapshot()[0] is not None
                           and sorted(m.id for m in after_restart.snapshot()[0].markers) == sorted(ids), 30)
     finally:
         launcher.shutdown(timeout=30)
         session.close()
-    assert [e.name for e in launcher.failures] == ['optim_node_1', 'optim_node_0']
+    assert [e.name for e in launcher.failures] == ['optim_node_1', 'optim_node']

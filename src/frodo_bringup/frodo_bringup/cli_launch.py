@@ -8,8 +8,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from frodo_bringup.graph import (NODES, GraphError, GraphNode, optimiser_workers, parse_node_spec, select_nodes,
-                                 with_nodes, with_optimiser_parameters)
+from frodo_bringup.graph import (AUTO_OPTIM_WORKERS, NODES, GraphError, GraphNode, optimiser_workers, parse_node_spec,
+                                 select_nodes, with_nodes, with_optimiser_parameters)
 from frodo_bringup.launcher import FAILURE_POLICIES, Launcher, describe_returncode
 from frodo_bringup.readiness import GraphMonitor
 from frodo_bringup.session import RosSession, stop_on_signals
@@ -35,9 +35,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def add_optimiser_arguments(parser: argparse.ArgumentParser) -> None:
     """--optim-workers, --map-dir, --resume (shared by `frodo launch` and `frodo run`)."""
-    parser.add_argument('--optim-workers', type=int, default=1, metavar='N',
-                        help='run N optimiser processes (optim_node_0 ... optim_node_<N-1>), worker k taking the '
-                             'objects with id %% N == k; worker 0 merges their shares into the complete /frodo/objects '
+    parser.add_argument('--optim-workers', default='auto', metavar='N',
+                        help='run N optimiser processes (optim_node, optim_node_1 ... optim_node_<N-1>), worker k '
+                             'taking the objects with id %% N == k, each with 1/N of the CPUs; optim_node merges '
+                             'their shares into the complete /frodo/objects and reports for all of them; '
+                             f'auto: {AUTO_OPTIM_WORKERS} where there are {AUTO_OPTIM_WORKERS} CPUs or more, else 1 '
                              '(default: %(default)s)')
     parser.add_argument('--map-dir', metavar='DIR',
                         help='the optimiser saves its object map (objects.json + meshes/) to DIR after each '

@@ -49,10 +49,15 @@ NODES: tuple[GraphNode, ...] = (
 VIEWER = GraphNode('viewer_node', 'frodo_bringup.viewer_node', 'frodo_bringup')
 # Every node whose parameters the shipped YAML holds.
 ALL_NODES = NODES + (VIEWER,)
-# The node whose diagnostics (`state`, `pending_objects`) say when a bag is fully processed; with several
-# workers (`--optim-workers N`) they are `optim_node_0` ... `optim_node_<N-1>`, all of which must be done.
+# The node whose diagnostics (`state`, `pending_objects`) say when a bag is fully processed. With several
+# workers (`--optim-workers N`) worker 0 keeps this name (it publishes the merged map and reports for every
+# worker) and the others are `optim_node_1` ... `optim_node_<N-1>`.
 OPTIMISER = 'optim_node'
 _WORKER_NAME = re.compile(rf'{OPTIMISER}_\d+')
+# `--optim-workers auto`: two workers where there are two CPUs or more. On the 2-core machine this was measured
+# on, two single-threaded workers finished the demo walk sooner than one two-threaded optimiser
+# (docs/performance.md, `frodo bench --only optim_workers`); more were not measured.
+AUTO_OPTIM_WORKERS = 2
 
 
 def is_optimiser(name: str) -> bool:
@@ -60,15 +65,29 @@ def is_optimiser(name: str) -> bool:
     return name == OPTIMISER or bool(_WORKER_NAME.fullmatch(name))
 
 
-def optimiser_workers(nodes: Sequence[GraphNode], count: int) -> tuple[GraphNode, ...]:
-    """`nodes` with the optimiser replaced by `count` workers `optim_node_0..count-1` splitting the objects by
-    id (parameters `worker_index`, `worker_count`; each reads the `optim_node` parameters); one keeps it.
+def optim_worker_count(value: int | str | None) -> int:
+    """The number of optimiser workers for `--optim-workers VALUE`: a positive integer, or 'auto' / None for
+    AUTO_OPTIM_WORKERS capped at the CPUs this process may use."""
+    if value is None or value == 'auto':
+        return max(1, min(AUTO_OPTIM_WORKERS, len(os.sched_getaffinity(0))))
+    try:
+        count = int(value)
+    except (TypeError, ValueError):
+        raise GraphError(f"--optim-workers must be a positive integer or 'auto', got {value!r}") from None
+    if count < 1:
+        raise GraphError(f'--optim-workers must be at least 1, got {count}')
+    return count
+
+
+def optimiser_workers(nodes: Sequence[GraphNode], count: int | str | None) -> tuple[GraphNode, ...]:
+    """`nodes` with the optimiser split into `count` workers (`optim_worker_count`) that share the objects by id
+    (parameters `worker_index`, `worker_count`): worker 0 keeps the name `optim_node`, the others are
+    `optim_node_1..count-1` reading the `optim_node` parameters. One worker keeps the graph as it is.
 
     Each worker gets 1/count of the CPUs as torch threads (OMP_NUM_THREADS): with every worker on all of them,
     their OpenMP teams spin against each other (2 workers on 2 CPUs: the demo walk took 284.8 s instead of
     54.8 s with one; docs/experiments/frodo_optim_history.md, "One OpenMP team per process")."""
-    if count < 1:
-        raise GraphError(f'--optim-workers must be at least 1, got {count}')
+    count = optim_worker_count(count)
     if count == 1:
         return tuple(nodes)
     threads = str(max(1, len(os.sched_getaffinity(0)) // count))
@@ -77,7 +96,8 @@ def optimiser_workers(nodes: Sequence[GraphNode], count: int) -> tuple[GraphNode
         if node.name != OPTIMISER:
             out.append(node)
             continue
-        out += [GraphNode(f'{OPTIMISER}_{k}', node.module, node.package, params_key=OPTIMISER,
+        out += [GraphNode(OPTIMISER if k == 0 else f'{OPTIMISER}_{k}', node.module, node.package,
+                          params_key='' if k == 0 else OPTIMISER,
                           parameters=node.parameters + (('worker_index', k), ('worker_count', count)),
                           env=node.env + (('OMP_NUM_THREADS', threads),))
                 for k in range(count)]

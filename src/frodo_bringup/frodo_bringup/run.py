@@ -4,7 +4,8 @@ Launch the graph, wait until its nodes are up and subscribed, play the bag, wait
 (every optimiser worker) reports `state` = idle and `pending_objects` = 0 after the bag has finished
 (CONTRACT.md "Done") and no node's diagnostics counters move any more (see `OutputCollector.done`),
 write the output files from the latest `/frodo/objects`, `/frodo/boxes` and `/frodo/object_states` (complete
-in every message, with several optimiser workers too: worker 0 merges their shares), shut the graph down. With `viewer='rrd'` the Rerun viewer node records the run to `DIR/frodo.rrd`.
+in every message, with several optimiser workers too: worker 0 merges their shares), shut the graph down.
+With `viewer='rrd'` the Rerun viewer node records the run to `DIR/frodo.rrd`.
 """
 from __future__ import annotations
 
@@ -248,11 +249,11 @@ def run_bag(bag: str | os.PathLike, out_dir: str | os.PathLike, params_files: Se
             nodes: Sequence[GraphNode] = NODES, startup_timeout: float = 60.0,
             stop: threading.Event | None = None, output: TextIO | None = None, progress: bool = True,
             env: dict[str, str] | None = None, player_factory: Callable[..., Player] = Player,
-            optim_workers: int = 1, map_dir: str | os.PathLike | None = None,
+            optim_workers: int | str | None = 'auto', map_dir: str | os.PathLike | None = None,
             resume: str | os.PathLike | None = None) -> RunResult:
     """Reconstruct one bag end to end; `timeout` bounds the wait for the graph after the bag has played.
-    `optim_workers` optimiser processes split the objects; the optimiser saves its object map to `map_dir`
-    and starts from the one in `resume` (`frodo launch --map-dir / --resume`).
+    `optim_workers` optimiser processes split the objects ('auto': `graph.optim_worker_count`); the optimiser
+    saves its object map to `map_dir` and starts from the one in `resume` (`frodo launch --map-dir / --resume`).
     `player_factory(node, bag, rate=, progress=, ground_truth=)` makes the player (e.g. a
     `long_bag.RepeatingPlayer` for soak runs).
 

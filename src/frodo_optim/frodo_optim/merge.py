@@ -133,3 +133,35 @@ class MapMerger:
             return None
         merged = np.concatenate(tables)
         return merged[np.argsort(merged['object_id'], kind='stable')]
+
+
+class WorkerLoads:
+    """Worker 0's record of the work the other workers have left, from their `/diagnostics`.
+
+    CONTRACT.md "Done": the optimiser node reports `state` idle with `pending_objects` 0. With several workers
+    the optimiser node (worker 0, which also publishes the merged map) speaks for all of them, so that a listener
+    that watches only the optimiser node sees the whole optimiser: busy while any worker is busy or has not
+    reported yet, its pending objects the sum over workers.
+    """
+
+    def __init__(self, worker_count: int) -> None:
+        if worker_count < 1:
+            raise ValueError(f'worker_count must be at least 1, got {worker_count}')
+        self.worker_count = worker_count
+        self.loads: dict[int, tuple[bool, int]] = {}   # worker k >= 1 -> (busy, pending objects) last reported
+
+    def heard(self, worker: int, state: str, pending: int) -> None:
+        """Worker `worker` (1..N-1) reported `state` ('idle' or 'busy') and `pending` objects."""
+        if not 1 <= worker < self.worker_count:
+            raise ValueError(f'worker {worker} is not in 1..{self.worker_count - 1}')
+        self.loads[worker] = (state != 'idle', max(0, int(pending)))
+
+    def combined(self, own_busy: bool, own_pending: int) -> dict[str, str | int]:
+        """`state`, `pending_objects` of the whole optimiser and `pending_by_worker` ('?' for a worker not heard
+        from yet), given worker 0's own."""
+        busy = own_busy or len(self.loads) < self.worker_count - 1 or any(b for b, _ in self.loads.values())
+        pending = own_pending + sum(p for _, p in self.loads.values())
+        by_worker = [str(own_pending)] + [str(self.loads[k][1]) if k in self.loads else '?'
+                                          for k in range(1, self.worker_count)]
+        return {'state': 'busy' if busy else 'idle', 'pending_objects': pending,
+                'pending_by_worker': ' '.join(by_worker)}

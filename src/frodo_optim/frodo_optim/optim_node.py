@@ -24,6 +24,8 @@ Several workers (parameters worker_index k, worker_count N) split the objects by
 only its own objects' tracks, codes and views; workers 1..N-1 publish their share of the outputs on internal
 topics (topics.object_share_topic) and worker 0 merges every share into the complete map of the contract
 topics (frodo_optim.merge, which also says why worker 0). With one worker the outputs are published directly.
+Worker 0 (node name optim_node; the others optim_node_<k>) also reports `state` and `pending_objects` for all
+workers (merge.WorkerLoads, from their /diagnostics), so "done" can be read from the optimiser node alone.
 Every message says what the map has (ADDs) and every (class, id) it has retracted (DELETEs, repeated), never
 DELETEALL. With map_dir the
 worker saves its objects after each published stage (frodo_optim.object_map; also on the ~/save_map
@@ -35,6 +37,7 @@ import threading
 from collections import OrderedDict
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
@@ -51,7 +54,7 @@ from frodo_common.frames import depth_to_metres
 from frodo_common.marker_wire import MeshMarker, matches_rmw, read_marker_array, serialize_marker_array
 from frodo_optim.config import PARAMS as OPTIM_PARAMS, optim_config
 from frodo_optim.core import ObjectEstimate
-from frodo_optim.merge import TABLE_KIND, MapMerger, Retractions, item_marker
+from frodo_optim.merge import TABLE_KIND, MapMerger, Retractions, WorkerLoads, item_marker
 from frodo_optim.object_map import MapObject, MapWriter, load_maps, map_dirs, worker_map_dir
 from frodo_optim.reconstructor import ObjectInput, ObjectReconstructor, Scene, StageOutcome
 from frodo_optim.scheduling import Job, StageQueue
@@ -133,6 +136,11 @@ class OptimNode(FrodoNode):
                                              self.guarded(lambda m, kind=kind, k=k: self._on_share(kind, k, m),
                                                           f'worker_{k}_{kind}'), topics.LATCHED_QOS,
                                              raw=kind == 'objects' and self.map_wire)
+        # Worker 0 is the optimiser node a listener watches for "done": its state covers every worker's.
+        self.worker_loads = WorkerLoads(self.worker_count) if self.merger is not None else None
+        if self.worker_loads is not None:
+            self.create_subscription(DiagnosticArray, topics.DIAGNOSTICS,
+                                     self.guarded(self._on_diagnostics, 'diagnostics'), 50)
         self.map_lock = threading.Lock()
         self.map_writer = (MapWriter(worker_map_dir(self.params['map_dir'], self.worker_index, self.worker_count),
                                      (self.worker_index, self.worker_count)) if self.params['map_dir'] else None)
@@ -539,6 +547,17 @@ class OptimNode(FrodoNode):
             self._publish()
 
     # ------------------------------------------------------------ diagnostics and shutdown
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        """Worker 0: note the state and pending objects each other worker of this graph reports."""
+        for status in msg.status:
+            values = {kv.key: kv.value for kv in status.values}
+            index, _, count = values.get('worker', '').partition('/')
+            if (status.name == f'{self.get_name()}_{index}' and count == str(self.worker_count)
+                    and index.isdigit() and 1 <= int(index) < self.worker_count):
+                with self.cond:
+                    self.worker_loads.heard(int(index), values.get('state', 'busy'),
+                                            int(values.get('pending_objects', '0') or 0))
+
     def diagnostic_values(self) -> dict:
         with self.cond:
             # distinct objects with work left: queued, deferred dense stages, and the one being reconstructed
@@ -554,6 +573,8 @@ class OptimNode(FrodoNode):
                       'sparse_objects': sum(e.stage == 'sparse' for e in self.estimates.values()),
                       'dense_objects': sum(e.stage == 'dense' for e in self.estimates.values()),
                       'views_held': len(self.views.sparse), 'dense_views_held': len(self.views.dense)}
+            if self.worker_loads is not None:      # worker 0 reports for the whole optimiser
+                values.update(self.worker_loads.combined(bool(waiting), len(waiting)))
             for stage, info in self.stage_info.items():
                 if info:
                     oid = max(info)

@@ -4,7 +4,7 @@ import pytest
 from visualization_msgs.msg import Marker
 
 from frodo_common import conversions as conv
-from frodo_optim.merge import MapMerger, Retractions, item_marker
+from frodo_optim.merge import MapMerger, Retractions, WorkerLoads, item_marker
 from frodo_optim.states import STATES_DTYPE
 
 
@@ -87,3 +87,19 @@ def test_a_mesh_shared_with_its_points_as_an_array_is_merged_as_it_came():
     merger.put_markers('objects', 1, [conv.delete_marker('chair', 2, 1, 'world'), mesh])
     (item,) = merger.merged_markers('objects', 2, 'world')
     assert item is mesh
+
+
+def test_worker_0_reports_busy_until_every_worker_is_heard_idle_and_sums_their_pending_objects():
+    loads = WorkerLoads(3)
+    assert loads.combined(False, 0) == {'state': 'busy', 'pending_objects': 0, 'pending_by_worker': '0 ? ?'}
+    loads.heard(1, 'idle', 0)
+    assert loads.combined(False, 0)['state'] == 'busy'          # worker 2 not heard from yet
+    loads.heard(2, 'busy', 3)
+    assert loads.combined(False, 1) == {'state': 'busy', 'pending_objects': 4, 'pending_by_worker': '1 0 3'}
+    loads.heard(2, 'idle', 0)
+    assert loads.combined(False, 0) == {'state': 'idle', 'pending_objects': 0, 'pending_by_worker': '0 0 0'}
+    assert loads.combined(True, 2)['state'] == 'busy'           # its own work counts too
+    assert WorkerLoads(1).combined(False, 0)['state'] == 'idle'
+    for worker in (0, 3):
+        with pytest.raises(ValueError, match='not in 1..2'):
+            loads.heard(worker, 'idle', 0)

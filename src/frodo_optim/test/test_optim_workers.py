@@ -9,7 +9,7 @@ import json
 import numpy as np
 import rclpy
 import torch
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
@@ -32,6 +32,9 @@ STAMP = 1_000_000_000
 # prior: the one whose training codes the probe publishes (a code means a shape only to its own decoder)
 FAST = [Parameter('diagnostics_period', value=0.1), Parameter('mesh_resolution', value=24),
         Parameter('sparse_enabled', value=False), Parameter('prior', value='furniture')]
+
+
+WORKER_NAMES = ('optim_node', 'optim_node_1')   # as frodo_bringup.graph.optimiser_workers names them
 
 
 def _optimiser(name: str, *params: Parameter) -> OptimNode:
@@ -101,19 +104,20 @@ def test_two_workers_split_the_objects_and_a_depth_1_listener_gets_the_complete_
     rclpy.init()
     executor = SingleThreadedExecutor()
     try:
-        workers = [_optimiser(f'optim_node_{k}', Parameter('worker_index', value=k),
+        workers = [_optimiser(WORKER_NAMES[k], Parameter('worker_index', value=k),
                               Parameter('worker_count', value=2)) for k in range(2)]
         for w in workers:
             executor.add_node(w)
         probe = _Probe(executor)
         assert probe.spin(lambda: probe.tracks.get_subscription_count() == 2 and probe.codes.get_subscription_count() == 2)
         probe.publish([1, 2, 3, 4, 5])
-        assert probe.spin(lambda: sorted(probe.latest) == [1, 2, 3, 4, 5] and _idle(probe, 'optim_node_0')
-                          and _idle(probe, 'optim_node_1')), (sorted(probe.latest), probe.status('optim_node_0'))
+        assert probe.spin(lambda: sorted(probe.latest) == [1, 2, 3, 4, 5] and _idle(probe, 'optim_node')
+                          and _idle(probe, 'optim_node_1')), (sorted(probe.latest), probe.status('optim_node'))
         for k, w in enumerate(workers):
             assert sorted(w.estimates) == [i for i in (1, 2, 3, 4, 5) if i % 2 == k]   # its share, nothing else
-            assert sorted(w.tracks) == sorted(w.estimates) and probe.status(f'optim_node_{k}')['worker'] == f'{k}/2'
-        assert probe.status('optim_node_0')['shares_merged'] == '2/2'
+            assert sorted(w.tracks) == sorted(w.estimates) and probe.status(WORKER_NAMES[k])['worker'] == f'{k}/2'
+        assert probe.status('optim_node')['shares_merged'] == '2/2'
+        assert probe.status('optim_node')['pending_by_worker'] == '0 0'
         # Each mesh of the merged map is its worker's estimate (worker 1's came through its serialised share).
         for oid in (2, 3):
             est = workers[oid % 2].estimates[oid]
@@ -121,7 +125,7 @@ def test_two_workers_split_the_objects_and_a_depth_1_listener_gets_the_complete_
             assert np.array_equal(conv.marker_to_mesh(probe.latest[oid])[0], corners)
         # One writer of the contract topics (the merger, worker 0); worker 1 publishes its share internally.
         for topic in (topics.OBJECTS, topics.BOXES, OBJECT_STATES):
-            assert [i.node_name for i in probe.node.get_publishers_info_by_topic(topic)] == ['optim_node_0'], topic
+            assert [i.node_name for i in probe.node.get_publishers_info_by_topic(topic)] == ['optim_node'], topic
         assert [i.node_name for i in probe.node.get_publishers_info_by_topic(
             topics.object_share_topic('objects', 1))] == ['optim_node_1']
         assert probe.spin(lambda: _ids(probe.boxes[-1]) == [1, 2, 3, 4, 5] and _state_ids(probe) == [1, 2, 3, 4, 5], 10)
@@ -149,10 +153,31 @@ def test_two_workers_split_the_objects_and_a_depth_1_listener_gets_the_complete_
         workers[0].on_shutdown()
         workers[0].destroy_node()
         count = len(probe.messages)
-        workers[0] = _optimiser('optim_node_0', Parameter('worker_index', value=0), Parameter('worker_count', value=2))
+        workers[0] = _optimiser('optim_node', Parameter('worker_index', value=0), Parameter('worker_count', value=2))
         executor.add_node(workers[0])
         assert probe.spin(lambda: len(probe.messages) > count and sorted(probe.latest) == [1, 2, 4, 5]
-                          and _idle(probe, 'optim_node_0')), sorted(probe.latest)
+                          and _idle(probe, 'optim_node')), sorted(probe.latest)
+
+        # The optimiser node speaks for every worker: busy, with their pending objects, while worker 1 says it
+        # is busy (here a stand-in for worker 1, which no longer reports); another graph's worker 1 of 3 is not
+        # one of its workers.
+        executor.remove_node(workers[1])
+        workers[1].on_shutdown()
+        workers[1].destroy_node()
+        diagnostics = probe.node.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
+
+        def worker_1_says(state: str, pending: int, worker: str = '1/2') -> None:
+            diagnostics.publish(DiagnosticArray(status=[DiagnosticStatus(name='optim_node_1', values=[
+                KeyValue(key='state', value=state), KeyValue(key='pending_objects', value=str(pending)),
+                KeyValue(key='worker', value=worker)])]))
+
+        worker_1_says('busy', 2)
+        assert probe.spin(lambda: probe.status('optim_node').get('pending_by_worker') == '0 2', 10)
+        assert probe.status('optim_node')['state'] == 'busy' and probe.status('optim_node')['pending_objects'] == '2'
+        worker_1_says('idle', 0)
+        worker_1_says('busy', 5, worker='1/3')
+        assert probe.spin(lambda: _idle(probe, 'optim_node'), 10), probe.status('optim_node')
+        assert probe.status('optim_node')['pending_by_worker'] == '0 0'
     finally:
         executor.shutdown()
         rclpy.shutdown()
