@@ -119,8 +119,9 @@ CONFIG_DOC: dict[str, str] = {
     'box_contact_edges': 'Box fit: detection edges where the mask meets another instance (possibly hidden by it) '
                          'count like edges on the image border.',
     'box_surface_weight': 'Box fit: weight (per metre) of the one-sided residual that keeps the box\'s nearest corner '
-                          'no farther than surface_slack behind each detection\'s visible-surface depth (depth image or '
-                          'landmarks; 0: surface depths play no part in the box fit).',
+                          'no farther than surface_slack behind each detection\'s visible surface (depth image or '
+                          'landmarks), distances taken horizontally along the view (0: surface depths play no part '
+                          'in the box fit).',
     'box_bottom_below_weight': 'Box fit (objects on the floor): weight of a detection\'s bottom-edge residual where '
                                'the box reaches lower in the image than the detection (1: two-sided; above it: '
                                'full weight). A detection often ends above the floor contact (legs the mask '

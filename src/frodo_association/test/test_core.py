@@ -349,6 +349,27 @@ def test_box_fit_of_an_object_with_a_hidden_lower_part_stays_at_its_visible_surf
     assert with_surface < 0.35 and with_surface < 0.5 * without
 
 
+def test_the_surface_bound_of_a_tall_box_seen_from_above_is_horizontal():
+    # A 1.2 m chair behind a table, seen from 1.6 m looking down at it from 2 m in 5 views from one side: only its
+    # top 0.5 m shows (the table hides the rest, unflagged), and the visible surface lies on its front face. A
+    # bound on the optical depth of the nearest corner holds while the box sits far behind that surface (its top
+    # corners are optically nearer than its footprint); the same bound on the horizontal distance does not.
+    gt = Box3D(np.array([0.0, 0.0, 0.6]), np.array([0.5, 0.5, 1.2]), 0.0)
+    visible = Box3D(np.array([0.0, 0.0, 0.95]), np.array([0.5, 0.5, 0.5]), 0.0)
+    views = [look_at([x, -2.0, 1.6], [0.0, 0.0, 0.5]) for x in (-0.4, -0.2, 0.0, 0.2, 0.4)]
+    T_cw = np.stack([invert_transform(T) for T in views])
+    boxes = np.stack([_box_of(visible.center, visible.size, visible.yaw, T) for T in views])
+    # the front face (y = -0.25) where the ray through the detection box's centre meets it
+    rays = np.stack([T[:3, :3] @ np.linalg.solve(K, [(b[0] + b[2]) / 2, (b[1] + b[3]) / 2, 1.0])
+                     for T, b in zip(views, boxes)])
+    eyes = np.stack([T[:3, 3] for T in views])
+    surface = (-0.25 - eyes[:, 1]) / rays[:, 1]                        # optical depth (ray: camera z = 1)
+    fit = fit_box(np.repeat(K[None], len(views), 0), T_cw, boxes, np.ones((len(views), 4), bool), (0.35, 1.3),
+                  gt.center + [0.0, 0.4, 0.0], floor_height=0.0, anchor_weight=0.1, shape=(0.5, 0.5, 1.2),
+                  height_prior_weight=0.2, surface_depth=surface, surface_weight=1.0, bottom_below_weight=0.3)
+    assert np.linalg.norm(fit.center[:2] - gt.center[:2]) < 0.1      # the optical-depth bound: 0.135 m
+
+
 @pytest.mark.parametrize('hidden', [0.0, 0.36])
 def test_box_fit_on_the_floor_weighs_a_bottom_edge_above_the_box_less(hidden):
     # The same chair seen from one side, its lowest `hidden` metres not in its detections (legs its mask misses)
