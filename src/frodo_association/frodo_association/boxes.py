@@ -114,8 +114,9 @@ def _box_projection(p: np.ndarray, R: np.ndarray, t: np.ndarray, f: np.ndarray, 
     p: (S, P) = (cx, cy, [cz], log dx, log dy, log dz, yaw) per box (cz omitted when boxes stand on
     floor_height); R: (V, 3, 3), t: (V, 3) camera-from-world; f, c: (V, 2) focal lengths and principal points.
     Returns boxes (S, V, 4) = (min u, min v, max u, max v) over the 8 corners, or (boxes, jacobian (S, V, 4, P))
-    with `with_jacobian` (each edge follows its extreme corner). With `near_axis` = (a (V, 3), b (V,)) also the
-    least a . X + b over each box's corners X (world) per view (S, V) (and its Jacobian (S, V, P)), appended.
+    with `with_jacobian` (each edge follows its extreme corner). With `near_axis` = (a (N, 3), b (N,)) also the
+    least a_n . X + b_n over each box's corners X (world) for each of the N rows (S, N) (and its Jacobian
+    (S, N, P)), appended.
     """
     on_floor = floor_height is not None
     n_s, n_p = p.shape
@@ -237,24 +238,29 @@ def fit_box(K: np.ndarray, T_camera_world: np.ndarray, boxes: np.ndarray, edge_v
 
     known = np.zeros(len(boxes), bool) if surface_depth is None or surface_weight <= 0 \
         else np.isfinite(np.asarray(surface_depth, dtype=np.float64))
-    reach_axis, surface = _horizontal_reach(R, t, K, boxes, np.asarray(surface_depth, dtype=np.float64)
-                                            if known.any() else np.full(len(boxes), np.nan))
-    surface = surface[known]
+    # the surface bound's measure, for the views with a known surface only (the others cost nothing per step)
+    reach_axis, surface = _horizontal_reach(R[known], t[known], K[known], boxes[known],
+                                            np.asarray(surface_depth, dtype=np.float64)[known]) \
+        if known.any() else (None, np.zeros(0))
 
     def residuals_and_jacobian(p):                                     # p: (S, P) -> (S, M), (S, M, P)
-        proj, jac, near, near_jac = _box_projection(p, R, t, f, c, floor_height, with_jacobian=True,
-                                                    near_axis=reach_axis)
+        if reach_axis is None:
+            proj, jac = _box_projection(p, R, t, f, c, floor_height, with_jacobian=True)
+            near, near_jac = np.zeros((len(p), 0)), np.zeros((len(p), 0, p.shape[1]))
+        else:
+            proj, jac, near, near_jac = _box_projection(p, R, t, f, c, floor_height, with_jacobian=True,
+                                                        near_axis=reach_axis)
         err = (proj - boxes) / diag[:, None]
         inside = (err * outward > 0).astype(np.float64)
         scale = 1.0 + bottom * (1.0 - inside) * (bottom_below_weight - 1.0)
-        behind = near[:, known] - surface_slack - surface                  # > 0: box farther than its surface
+        behind = near - surface_slack - surface                            # > 0: box farther than its surface
         active = surface_weight * (behind > 0)
         r = np.concatenate([(err * scale)[:, edge_valid], (err * inside)[:, cut], active * behind,
                             weights * (p[:, n_center:n_center + 3] - np.log(prior)),
                             anchor_weight * (p[:, :n_center] - anchor)], axis=1)
         jac = jac / diag[:, None, None]
         return r, np.concatenate([(jac * scale[..., None])[:, edge_valid], (jac * inside[..., None])[:, cut],
-                                  near_jac[:, known] * active[..., None],
+                                  near_jac * active[..., None],
                                   np.broadcast_to(prior_jac, (len(p),) + prior_jac.shape)], axis=1)
 
     lo_size, hi_size = np.log(0.05), np.log(size_range[1] * 1.2)
