@@ -39,7 +39,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from frodo_association.boxes import box_iou, canonical_yaw, clip_boxes
-from frodo_association.config import AssociationConfig
+from frodo_association.config import AssociationConfig, EvidenceConfig
 from frodo_association.evidence import contact_edges, surface_depths
 from frodo_common.frames import depth_to_metres
 from frodo_association.tracker import Associator
@@ -106,11 +106,14 @@ class SceneResult:
 
 
 def run_scene(scene: SynthScene, cfg: AssociationConfig, filt: FilterConfig,
-              evidence: tuple[str, ...] = ('depth', 'landmarks'), trace: bool = False) -> SceneResult:
+              evidence: tuple[str, ...] = ('depth', 'landmarks'), trace: bool = False,
+              evidence_cfg: EvidenceConfig | None = None) -> SceneResult:
     """Associate every frame of a scene and score the final state against its ground truth. `evidence`: which of
-    the scene's depth images and landmarks (where it has them) give the detections' surface depths; `trace`:
-    also say per ground-truth object why it is or is not published (`trace_objects`, in `res.trace`)."""
+    the scene's depth images and landmarks (where it has them) give the detections' surface depths, as the node
+    takes them (`evidence_cfg`, default EvidenceConfig()); `trace`: also say per ground-truth object why it is or
+    is not published (`trace_objects`, in `res.trace`)."""
     assoc = Associator(cfg)
+    e = evidence_cfg or EvidenceConfig()
     gt_rows: list[int] = []
     vis_rows: list[float] = []
     res = SceneResult(center_err=[], size_err=[], yaw_err=[], kept_vis=[], pruned_vis=[], assoc_ms=[], refine_ms=[])
@@ -123,7 +126,9 @@ def run_scene(scene: SynthScene, cfg: AssociationConfig, filt: FilterConfig,
         if (frame.depth is not None and 'depth' in evidence) or (landmarks is not None and 'landmarks' in evidence):
             surface = surface_depths(frame.instances, labels, frame.K, invert_transform(frame.T_world_camera_observed),
                                      depth_to_metres(frame.depth) if 'depth' in evidence and frame.depth
-                                     is not None else None, landmarks if 'landmarks' in evidence else None)
+                                     is not None else None, landmarks if 'landmarks' in evidence else None,
+                                     e.evidence_erode_px, e.evidence_min_pixels, e.evidence_min_landmarks,
+                                     e.landmark_quantile)
         contact = contact_edges(frame.instances, labels, boxes, surface) if cfg.box_contact_edges else None
         t0 = time.perf_counter()
         assoc.add_frame(frame.stamp, frame.K, frame.T_world_camera_observed, frame.size, labels, boxes, surface,
@@ -384,7 +389,8 @@ HANDHELD_HEADER = ('| condition | variant | evidence | scenes | objects | recall
 
 
 def handheld_rows(seeds: list[int], conditions: list[str], variants: list[str], evidence: tuple[str, ...],
-                  cfg: AssociationConfig, filt: FilterConfig, out: dict) -> None:
+                  cfg: AssociationConfig, filt: FilterConfig, out: dict,
+                  evidence_cfg: EvidenceConfig | None = None) -> None:
     """Evaluate handheld keyframe scenes (made one at a time), print one HANDHELD_HEADER row per condition and
     variant, and store the pooled metrics in out['results']."""
     from frodo_association.handheld import make_handheld_scene
@@ -393,7 +399,7 @@ def handheld_rows(seeds: list[int], conditions: list[str], variants: list[str], 
     for variant in variants:
         for name in conditions:
             res = [run_scene(make_handheld_scene(seed, **HANDHELD_CONDITIONS[name], **HANDHELD_VARIANTS[variant]),
-                             cfg, filt, evidence) for seed in seeds]
+                             cfg, filt, evidence, evidence_cfg=evidence_cfg) for seed in seeds]
             m = summarise(res)
             out['results'][f'{name} / {variant} / {ev}'] = m
             print(f"| {name} | {variant} | {ev} | {m['scenes']} | {m['objects']} | {m['completeness']:.3f} | "
@@ -423,18 +429,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--variants', default='base', help='handheld: comma-separated subset of: ' + ', '.join(HANDHELD_VARIANTS))
     ap.add_argument('--evidence', default='depth,landmarks',
                     help="handheld: surface depth from 'depth', 'landmarks', both (depth first) or 'none'")
-    ap.add_argument('--set', default='', metavar='NAME=VALUE,...', help='override AssociationConfig fields')
+    ap.add_argument('--set', default='', metavar='NAME=VALUE,...', help='override AssociationConfig and '
+                    'EvidenceConfig fields (the association node\'s parameters)')
     ap.add_argument('--trace', action='store_true', help='with --bags: per ground-truth object, why it is or is '
                     'not published (`trace_objects`)')
     args = ap.parse_args(argv)
     filt = FilterConfig()
-    base = AssociationConfig()
-    overrides = {}
+    base, evidence_cfg = AssociationConfig(), EvidenceConfig()
+    overrides: dict[str, dict] = {'association': {}, 'evidence': {}}
     for item in filter(None, args.set.split(',')):
-        key, _, value = item.partition('=')
-        kind = type(getattr(base, key.strip()))
-        overrides[key.strip()] = value.strip().lower() in ('1', 'true') if kind is bool else kind(value)
-    base = replace(base, **overrides)
+        key, _, value = (part.strip() for part in item.partition('='))
+        owner = 'association' if hasattr(base, key) else 'evidence' if hasattr(evidence_cfg, key) else None
+        if owner is None:
+            ap.error(f'--set: {key!r} is no AssociationConfig or EvidenceConfig field')
+        kind = type(getattr(base if owner == 'association' else evidence_cfg, key))
+        overrides[owner][key] = value.lower() in ('1', 'true') if kind is bool else kind(value)
+    base = replace(base, **overrides['association'])
+    evidence_cfg = replace(evidence_cfg, **overrides['evidence'])
     out = {'machine': f'{platform.node()} ({platform.processor() or platform.machine()})', 'results': {}}
     if args.layout == 'handheld':
         evidence = () if args.evidence == 'none' else tuple(args.evidence.split(','))
@@ -444,8 +455,8 @@ def main(argv: list[str] | None = None) -> int:
         print(HANDHELD_HEADER)
         print('|' + '---|' * (HANDHELD_HEADER.count('|') - 1))
         handheld_rows(seeds, [c.strip() for c in (args.conditions or ','.join(HANDHELD_CONDITIONS)).split(',')],
-                      [v.strip() for v in args.variants.split(',')], evidence, cfg, filt, out)
-        out['config'] = asdict(cfg)
+                      [v.strip() for v in args.variants.split(',')], evidence, cfg, filt, out, evidence_cfg)
+        out['config'] = {**asdict(cfg), **asdict(evidence_cfg)}
         if args.json:
             with open(args.json, 'w') as fh:
                 json.dump(out, fh, indent=1)
@@ -473,14 +484,14 @@ def main(argv: list[str] | None = None) -> int:
     for name, scenes in groups.items():
         for prune in (True,) if args.no_ablation else (True, False):
             evidence = () if args.evidence == 'none' else tuple(args.evidence.split(','))
-            res = [run_scene(scene, replace(base, prune=prune), filt, evidence, args.trace and prune)
+            res = [run_scene(scene, replace(base, prune=prune), filt, evidence, args.trace and prune, evidence_cfg)
                    for scene in scenes]
             for scene_no, r in enumerate(res if args.trace and prune else ()):
                 print(f'# trace: {name}, scene {scene_no}\n' + '\n'.join(f'#   {line}' for line in r.trace))
             m = summarise(res)
             out['results'][f'{name} / prune={prune}'] = m
             print(table_row(name, prune, m), flush=True)
-    out['config'] = asdict(base)
+    out['config'] = {**asdict(base), **asdict(evidence_cfg)}
     if args.json:
         with open(args.json, 'w') as fh:
             json.dump(out, fh, indent=1)

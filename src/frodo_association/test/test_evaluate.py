@@ -69,3 +69,19 @@ def test_add_noise_perturbs_a_recorded_scene_like_make_scene():
     assert sum(len(fr.gt) for fr in noisy.frames) < sum(len(fr.gt) for fr in scene.frames)   # misses
     again = add_noise(scene, 0, mask_noise=2, rot_noise_deg=0.5, trans_noise=0.02, miss_rate=0.5)
     assert np.array_equal(again.frames[3].instances, g.instances)      # seeded
+
+
+def test_set_overrides_association_and_evidence_fields_and_rejects_others(tmp_path, capsys):
+    import json
+
+    import pytest
+
+    from frodo_association.evaluate import main
+    out = tmp_path / 'eval.json'
+    assert main(['--seeds', '1', '--objects', '2', '--frames', '10', '--conditions', 'clean', '--no-ablation',
+                 '--set', 'landmark_quantile=0.1,min_track_views=4', '--json', str(out)]) == 0
+    config = json.loads(out.read_text())['config']
+    assert config['landmark_quantile'] == 0.1 and config['min_track_views'] == 4
+    with pytest.raises(SystemExit) as stop:
+        main(['--seeds', '1', '--set', 'no_such_field=1'])
+    assert stop.value.code == 2 and 'no_such_field' in capsys.readouterr().err
