@@ -193,7 +193,7 @@ def test_clipped_and_skipped_silhouette_equals_reading_every_sample(prior, scene
         vol = volume.clone().requires_grad_(True)
         e = fn(vol, so3_exp(pose[0]) @ (T[:3, :3] / 0.52), pose[1], torch.tensor(0.52), rays, cfg.ray_step,
                cfg.sharpness, cfg.mask_confidence, *extra)
-        energies.append(float(e))
+        energies.append(float(e.detach()))
         grads.append(torch.cat([g.reshape(-1) for g in torch.autograd.grad(e, [vol, *pose])]))
     assert 0.05 < energies[1] < 5 and abs(energies[0] - energies[1]) < 1e-4 * energies[1]
     assert float(torch.linalg.norm(grads[0] - grads[1])) < 1e-3 * float(torch.linalg.norm(grads[1]))
