@@ -104,7 +104,8 @@ class DenseConfig:
     vjp_tail: float = 1e-5             # ... less the smallest |dEs/dG| that sum to under this fraction of all
     grid_band: float = 0.25            # normalised: re-evaluate only the grid within this of the surface (0: all)
     screen_iterations: int = 10        # several starts: run each this long, then continue only those near the best
-    screen_margin: float = 0.005       # ... those whose check energy so far is within this of the lowest
+    screen_margin: float = 0.0         # ... those whose check energy so far is within this of the lowest (0: the
+                                       # lowest only; 0.005 let all three go on in some live runs, for the same F1)
     start_separation: float = 0.02     # metres: a start whose placed surface is closer to an earlier one's is skipped
     seed: int = 0
 
