@@ -68,13 +68,19 @@ class ViewerNode(FrodoNode):
             self.create_subscription(MarkerArray, topics.GROUND_TRUTH, self.guarded(self._on_ground_truth), latched)
 
     def _on_info(self, msg: CameraInfo) -> None:
+        first = self.frames.camera_info is None
         self.frames.camera_info = msg
+        if first:   # frames completed before the first camera info (another topic, delivered later) were held
+            for frame in self.frames.complete_frames():
+                self._log_frame(frame)
 
     def _add(self, msg, part: str) -> None:
         frame = self.frames.add(conv.stamp_to_ns(msg.header.stamp), part, msg)
+        if frame is not None and self.frames.camera_info is not None:
+            self._log_frame(frame)
+
+    def _log_frame(self, frame) -> None:
         info = self.frames.camera_info
-        if frame is None or info is None:
-            return
         due = self.recording.frame_count % self.recording.image_stride == 0   # decode only logged images
         self.recording.log_frame(frame.stamp_ns, conv.camera_info_to_K(info), (info.width, info.height),
                                  conv.pose_to_matrix(frame.parts['pose'].pose),

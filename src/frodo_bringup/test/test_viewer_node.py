@@ -95,3 +95,39 @@ def test_viewer_records_a_verifiable_rrd(tmp_path):
     assert timed['/world/camera/image/detections'] == set(stamps)
     assert timed['/world/objects/chair_1'] == {stamps[1], stamps[2]}      # shown at frame 2, cleared at frame 3
     assert timed['/world/objects/chair_2'] == {stamps[2]}
+
+
+def test_frames_completed_before_the_camera_info_are_logged_when_it_arrives(tmp_path):
+    """Image and pose of a frame may arrive before the first camera_info (another topic): the frame is held and
+    logged once the camera info comes, not dropped."""
+    proc = subprocess.Popen([sys.executable, '-m', 'frodo_bringup.viewer_node', '--ros-args',
+                             '-p', f'rrd_path:={tmp_path / "view.rrd"}', '-p', 'mode:=save'],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    rclpy.init()
+    try:
+        node = rclpy.create_node('viewer_feeder')
+        image = node.create_publisher(Image, topics.IMAGE, topics.FRAME_QOS)
+        pose = node.create_publisher(PoseStamped, topics.POSE, topics.FRAME_QOS)
+        info = node.create_publisher(CameraInfo, topics.CAMERA_INFO, topics.FRAME_QOS)
+        diags = []
+        node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, diags.append, 50)
+        _wait_for_subscribers(node, [image, pose, info])
+        stamps = [1_700_000_000_000_000_000 + i * 10**8 for i in range(2)]
+        for stamp in stamps:
+            image.publish(conv.numpy_to_image(np.zeros((48, 64, 3), np.uint8), 'rgb8', stamp, 'cam'))
+            pose.publish(conv.make_pose_stamped(look_at([2, 0, 1], [0, 0, 0.5]), stamp, 'world'))
+        deadline = time.time() + 3       # the viewer has them, without a camera info: nothing logged yet
+        while time.time() < deadline:
+            rclpy.spin_once(node, timeout_sec=0.1)
+        assert int(latest_status(diags, 'viewer_node').get('frames_logged', 0)) == 0
+        K = np.array([[100.0, 0, 32], [0, 100, 24], [0, 0, 1]])
+        info.publish(conv.make_camera_info(K, 64, 48, stamps[-1], 'cam'))
+        deadline = time.time() + 20
+        while time.time() < deadline and latest_status(diags, 'viewer_node').get('frames_logged') != '2':
+            rclpy.spin_once(node, timeout_sec=0.1)
+        assert latest_status(diags, 'viewer_node').get('frames_logged') == '2'
+    finally:
+        rclpy.shutdown()
+        os.killpg(proc.pid, signal.SIGINT)
+        out, _ = proc.communicate(timeout=20)
+    assert proc.returncode == 0, out
