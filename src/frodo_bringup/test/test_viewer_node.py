@@ -29,11 +29,22 @@ def _wait_for_subscribers(node, publishers, timeout=20.0):
         rclpy.spin_once(node, timeout_sec=0.1)
 
 
-def test_viewer_records_a_verifiable_rrd(tmp_path):
-    rrd = tmp_path / 'view.rrd'
-    proc = subprocess.Popen([sys.executable, '-m', 'frodo_bringup.viewer_node', '--ros-args',
+def _start_viewer(rrd: Path) -> subprocess.Popen:
+    """The viewer node as its own process, saving to rrd."""
+    return subprocess.Popen([sys.executable, '-m', 'frodo_bringup.viewer_node', '--ros-args',
                              '-p', f'rrd_path:={rrd}', '-p', 'mode:=save'],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+
+
+def _stop_viewer(proc: subprocess.Popen) -> str:
+    """SIGINT the viewer (as a launcher does); its output."""
+    os.killpg(proc.pid, signal.SIGINT)
+    return proc.communicate(timeout=20)[0]
+
+
+def test_viewer_records_a_verifiable_rrd(tmp_path):
+    rrd = tmp_path / 'view.rrd'
+    proc = _start_viewer(rrd)
     rclpy.init()
     try:
         node = rclpy.create_node('viewer_feeder')
@@ -73,8 +84,7 @@ def test_viewer_records_a_verifiable_rrd(tmp_path):
         assert int(latest_status(diags, 'viewer_node').get('frames_logged', 0)) == 3
     finally:
         rclpy.shutdown()
-        os.killpg(proc.pid, signal.SIGINT)
-        out, _ = proc.communicate(timeout=20)
+        out = _stop_viewer(proc)
     assert proc.returncode == 0, out
     assert rrd.exists() and rrd.stat().st_size > 0
     rerun_cli = Path(sys.executable).with_name('rerun')
@@ -100,9 +110,7 @@ def test_viewer_records_a_verifiable_rrd(tmp_path):
 def test_frames_completed_before_the_camera_info_are_logged_when_it_arrives(tmp_path):
     """Image and pose of a frame may arrive before the first camera_info (another topic): the frame is held and
     logged once the camera info comes, not dropped."""
-    proc = subprocess.Popen([sys.executable, '-m', 'frodo_bringup.viewer_node', '--ros-args',
-                             '-p', f'rrd_path:={tmp_path / "view.rrd"}', '-p', 'mode:=save'],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    proc = _start_viewer(tmp_path / 'view.rrd')
     rclpy.init()
     try:
         node = rclpy.create_node('viewer_feeder')
@@ -128,6 +136,5 @@ def test_frames_completed_before_the_camera_info_are_logged_when_it_arrives(tmp_
         assert latest_status(diags, 'viewer_node').get('frames_logged') == '2'
     finally:
         rclpy.shutdown()
-        os.killpg(proc.pid, signal.SIGINT)
-        out, _ = proc.communicate(timeout=20)
+        out = _stop_viewer(proc)
     assert proc.returncode == 0, out
