@@ -86,12 +86,15 @@ def test_stage_counts_add_up_and_are_stated_against_the_roofline(tmp_path):
                                                   'stages': doc})
 
 
-def test_stage_latencies_count_from_each_objects_first_track():
+def test_stage_latencies_count_from_each_objects_confirmation():
     confirmed = {1: 10.0, 2: 12.0, 3: 20.0}
     reached = {1: {'code': 10.25, 'code_ready': 10.25, 'fused': 10.5, 'sparse': 14.0, 'dense': 30.0},
                2: {'code': 12.0, 'code_ready': 13.0, 'fused': 13.25, 'sparse': 18.0}}
     assert bench.stage_latencies(confirmed, reached) == {'code': [0.0, 0.25], 'code_ready': [0.25, 1.0],
                                                          'fused': [0.5, 1.25], 'sparse': [4.0, 6.0], 'dense': [20.0]}
+    # a code that reached the probe before the object's track: confirmation is the code's arrival, never negative
+    early = bench.stage_latencies({1: 10.0}, {1: {'code': 9.75, 'code_ready': 10.0, 'fused': 10.5}})
+    assert early['code'] == [0.0] and early['code_ready'] == [0.25] and early['fused'] == [0.75]
 
 
 def test_synthetic_room_section_times_frodo_reconstruct_and_reads_its_scores(tmp_path):

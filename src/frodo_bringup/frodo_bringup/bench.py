@@ -321,12 +321,15 @@ def association_latency(objects: list[int], frames: int, seed: int = 0) -> dict[
 
 
 def stage_latencies(confirmed: dict[int, float], reached: dict[int, dict[str, float]]) -> dict[str, list[float]]:
-    """Per stage, the seconds from each object's confirmation (its first track) to its first state at that stage,
-    sorted, to its first fused code ('code') and to its first code of as many views as the optimiser needs
-    ('code_ready', `OptimConfig.min_views`: before it no stage can run); objects that never reached a stage are
-    left out of its list."""
+    """Per stage, the seconds from each object's confirmation to its first state at that stage, sorted, to its
+    first fused code ('code') and to its first code of as many views as the optimiser needs ('code_ready',
+    `OptimConfig.min_views`: before it no stage can run); objects that never reached a stage are left out of its
+    list. Confirmation is the first of its track, code or state to reach the probe: each topic has its own
+    queue, so a code (made only for a confirmed object) can arrive before the track that announced it, and a
+    latency from the track alone came out negative."""
     from frodo_optim.states import STAGES
-    return {stage: sorted(round(reached[oid][stage] - confirmed[oid], 2) for oid in confirmed
+    start = {oid: min([t, *reached.get(oid, {}).values()]) for oid, t in confirmed.items()}
+    return {stage: sorted(round(reached[oid][stage] - start[oid], 2) for oid in confirmed
                           if stage in reached.get(oid, {})) for stage in ('code', 'code_ready', *STAGES)}
 
 
@@ -706,6 +709,6 @@ def markdown_page(doc: dict[str, Any], plots_dir: str) -> str:
         if latencies:
             lines += ['| from confirmation to | seconds per object |', '|---|---|']
             lines += [f"| {stage} | {', '.join(str(v) for v in values)} |" for stage, values in latencies.items()]
-            lines.append('')
+            lines += ['', 'Confirmation: the first of the object\'s track, code or state to reach a listening node.', '']
     lines += [f'![{p}]({plots_dir}/{p})' for p in doc.get('plots', []) if p.endswith('.png')]
     return '\n'.join(lines).rstrip() + '\n'
