@@ -182,6 +182,11 @@ class EvidenceConfig:
     evidence_min_landmarks: int = 3
     landmark_quantile: float = 0.25
 
+    def surface_arguments(self) -> dict:
+        """These settings as keyword arguments of `evidence.surface_depths` (the node and the evaluation alike)."""
+        return {'erode_px': self.evidence_erode_px, 'min_pixels': self.evidence_min_pixels,
+                'min_landmarks': self.evidence_min_landmarks, 'landmark_quantile': self.landmark_quantile}
+
 
 EVIDENCE_DOC: dict[str, str] = {
     'evidence_erode_px': 'Masks are eroded by this many pixels before depth pixels or landmarks inside them are used '

@@ -127,8 +127,7 @@ def run_scene(scene: SynthScene, cfg: AssociationConfig, filt: FilterConfig,
             surface = surface_depths(frame.instances, labels, frame.K, invert_transform(frame.T_world_camera_observed),
                                      depth_to_metres(frame.depth) if 'depth' in evidence and frame.depth
                                      is not None else None, landmarks if 'landmarks' in evidence else None,
-                                     e.evidence_erode_px, e.evidence_min_pixels, e.evidence_min_landmarks,
-                                     e.landmark_quantile)
+                                     **e.surface_arguments())
         contact = contact_edges(frame.instances, labels, boxes, surface) if cfg.box_contact_edges else None
         t0 = time.perf_counter()
         assoc.add_frame(frame.stamp, frame.K, frame.T_world_camera_observed, frame.size, labels, boxes, surface,

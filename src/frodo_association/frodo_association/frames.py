@@ -55,8 +55,7 @@ class FrameAssociator:
             e = self.evidence
             t0 = time.perf_counter()
             surface = surface_depths(instances, labels, K, invert_transform(T_world_camera), depth_m, landmarks,
-                                     e.evidence_erode_px, e.evidence_min_pixels, e.evidence_min_landmarks,
-                                     e.landmark_quantile)
+                                     **e.surface_arguments())
             evidence_ms = 1e3 * (time.perf_counter() - t0)
         contact = (contact_edges(instances, labels, boxes, surface) if self.associator.cfg.box_contact_edges
                    else None)
