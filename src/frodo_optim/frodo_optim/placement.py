@@ -11,8 +11,8 @@ Hypotheses (centre, scale, yaw):
 
 - centre: the input box centre; the least-squares intersection of the rays through the detection boxes'
   centres (robust: Huber-reweighted, views whose detection touches the image border left out); and points
-  on the mean viewing direction through it (+-15 and +-30 cm: depth is the weakly constrained direction
-  of a walk);
+  on the mean viewing direction through it (every 15 cm up to +-60 cm: depth is the weakly constrained
+  direction of a walk, and on inside-out walks the association box is 30-60 cm off along it);
 - scale: per centre and yaw, the median over views of observed / predicted detection-box diagonal (the
   projected size is nearly linear in the scale at a fixed centre; one fixed-point refinement), times
   {1/1.25, 1, 1.25}; and the input box's scale;
@@ -51,7 +51,7 @@ from frodo_common.geometry import Box3D, yaw_matrix
 from frodo_optim.adam import Adam
 from frodo_optim import support
 
-DEPTH_OFFSETS = (-0.3, -0.15, 0.15, 0.3)     # metres along the mean viewing direction through the ray centre
+DEPTH_OFFSETS = (-0.6, -0.45, -0.3, -0.15, 0.15, 0.3, 0.45, 0.6)   # metres along the mean viewing direction
 SCALE_FACTORS = (1 / 1.25, 1.0, 1.25)         # around the silhouette scale
 SCALE_RANGE = (1 / 3, 3.0)                    # hypotheses' scales relative to the input box scale
 
