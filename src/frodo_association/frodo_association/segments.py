@@ -137,6 +137,46 @@ def lsq_center(segments: np.ndarray, prior_weight: float = 1e-3) -> np.ndarray:
     return lsq_centers(segments, np.zeros(len(segments), dtype=np.int64), 1, prior_weight)[0]
 
 
+def merge_segment_groups(segments: np.ndarray, group: np.ndarray, frames: np.ndarray, penalty: float,
+                         prior_weight: float = 1e-3, locked: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Merge segment groups while the DP-means objective falls (sum of squared segment-to-centre distances plus
+    penalty^2 per group): a group keeps its centre on its own segments, so a leader-opened singleton never
+    dissolves by re-assignment alone, even where one centre fits it and its neighbour group within the penalty.
+
+    segments (N, 2, 3); group (N,) in 0..G-1 or -1 (unassigned, left alone); frames (N,): two groups holding
+    detections of one frame never merge (one object is detected at most once per frame); locked: optional (G,) bool
+    per input group id, two locked groups never merge (with each other; a merged group is locked when one of its
+    groups was). Greedy, the pair with the largest fall first; a merged centre must lie within `penalty` of each
+    of its segments. Returns (group with consecutive ids in the order of the input ids, centres (G', 3))."""
+    group = np.array(group, dtype=np.int64)
+    locked_ids = set(np.nonzero(locked)[0].tolist()) if locked is not None else set()
+    while True:
+        ids = np.unique(group[group >= 0])
+        members = [np.nonzero(group == g)[0] for g in ids]
+        cost = [float(np.sum(point_segment_distance(lsq_center(segments[m], prior_weight)[None], segments[m]) ** 2))
+                for m in members]
+        best, pair = 0.0, None
+        for i in range(len(ids)):
+            for j in range(i + 1, len(ids)):
+                both = np.concatenate([members[i], members[j]])
+                if (ids[i] in locked_ids and ids[j] in locked_ids) or len(np.unique(frames[both])) < len(both):
+                    continue
+                d = point_segment_distance(lsq_center(segments[both], prior_weight)[None], segments[both])[:, 0]
+                fall = penalty ** 2 + cost[i] + cost[j] - float(np.sum(d ** 2))
+                if d.max() < penalty and fall > best:
+                    best, pair = fall, (ids[i], ids[j])
+        if pair is None:
+            break
+        group[group == pair[1]] = pair[0]
+        if pair[1] in locked_ids:
+            locked_ids.add(pair[0])
+    ids, group_new = np.unique(group[group >= 0], return_inverse=True)
+    out = np.full(len(group), -1, np.int64)
+    out[group >= 0] = group_new
+    centres = lsq_centers(segments[group >= 0], out[group >= 0], len(ids), prior_weight).reshape(-1, 3)
+    return out, centres
+
+
 def gated_assignment(cost: np.ndarray, gate: float) -> np.ndarray:
     """One-to-one assignment of rows to columns with cost < gate (Hungarian); (R,) column index or -1."""
     out = np.full(cost.shape[0], -1, dtype=np.int64)

@@ -16,7 +16,9 @@ the pruning size are "unreliable": they join clusters but open none (they count 
 Always-truncated objects (the project's own extension; the paper does not address them): truncated
 detections that stay unassigned and lie farther than lambda from every centre of their class are pooled;
 at each full pass the pool of a class is clustered among itself with the same segment DP-means (leader
-opening at lambda, then least-squares centres and nearest-centre re-assignment), and a group with
+opening at lambda, then least-squares centres and nearest-centre re-assignment, then merges of groups while
+the DP-means objective falls, `segments.merge_segment_groups`: near-parallel rays of a narrow baseline are
+split by the leader sweep, and a group's centre on its own segments never lets it dissolve), and a group with
 detections from at least `truncated_min_views` distinct frames, whose centre is at least
 `truncated_merge_distance` from every cluster of its class, opens a cluster (one detection per frame, the
 nearest). Pooled detections explained by a published object's 3D box (IoU of the detection box with the
@@ -52,7 +54,8 @@ from frodo_association.config import ASSOCIATION_DTYPE, AssociationConfig
 from frodo_association.pruning import prune_detections
 from frodo_association.segments import (box_segments, clip_segments_to_heights, complete_truncated_boxes,
                                         depth_intervals, gated_assignment, lsq_center, lsq_centers,
-                                        point_segment_distance, ray_segments, surface_intervals)
+                                        merge_segment_groups, point_segment_distance, ray_segments,
+                                        surface_intervals)
 from frodo_common.categories import category_by_id
 from frodo_common.geometry import invert_transform
 from frodo_detection.core import instance_boxes, resolution_scale
@@ -284,9 +287,10 @@ class Associator:
             changed, gone = self.full_pass()
             dirty |= changed
             removed.update(gone)
-            gone, merge_frames = self.merge_explained()
-            removed.update(gone)
-            dirty |= merge_frames
+            for merge in (self.merge_explained, self.merge_consistent):
+                gone, merge_frames = merge()
+                removed.update(gone)
+                dirty |= merge_frames
         merged, merge_frames = self.merge_close()
         removed.update(merged)
         confirm_frames, dropped = self._update_confirmation(recheck=full)
@@ -309,9 +313,10 @@ class Associator:
         pruning of every frame with the final boxes (the merges again after each round of box fits). Returns what
         changed (republish stamps, removed ids)."""
         dirty, removed = self.full_pass()
-        gone, merge_frames = self.merge_explained()
-        removed.update(gone)
-        dirty |= merge_frames
+        for merge in (self.merge_explained, self.merge_consistent):
+            gone, merge_frames = merge()
+            removed.update(gone)
+            dirty |= merge_frames
         merged, merge_frames = self.merge_close()
         removed.update(merged)
         dirty |= merge_frames
@@ -564,9 +569,10 @@ class Associator:
         of every centre of their class), per class. Groups are opened leader-style (the first pooled segment
         farther than lambda from every group centre opens a group at its midpoint and takes the pooled
         segments within lambda), then refined by least-squares centres and nearest-centre re-assignment within
-        lambda. A group with detections of at least truncated_min_views frames, whose centre is at least
-        truncated_merge_distance from every cluster of its class, opens a cluster flagged `from_truncated`
-        with its nearest detection of each frame. Returns the opened ids."""
+        lambda, and merged while the DP-means objective falls (`merge_segment_groups`). A group with
+        detections of at least truncated_min_views frames, whose centre is at least truncated_merge_distance
+        from every cluster of its class, opens a cluster flagged `from_truncated` with its nearest detection
+        of each frame. Returns the opened ids."""
         cfg = self.cfg
         if cfg.truncated_min_views <= 0:
             return []
@@ -598,6 +604,8 @@ class Associator:
                 if np.array_equal(new, group):
                     break
                 group = new
+            group, g_centers = merge_segment_groups(segs, group, self.rows.frame[sel], cfg.cluster_penalty,
+                                                     cfg.center_prior_weight)
             for g in range(len(g_centers)):
                 members = np.nonzero(group == g)[0]
                 frames = self.rows.frame[sel[members]]
@@ -765,6 +773,36 @@ class Associator:
                             and footprint_overlap(a.box, b.box) >= self.cfg.box_overlap_merge:
                         removed, dirty = self._merge_pair(a.object_id, b.object_id, removed, dirty)
                         touched |= {a.object_id, b.object_id}
+        return removed, dirty
+
+    def merge_consistent(self) -> tuple[dict[int, int], set[int]]:
+        """DP-means merges of a split object (the project's own extension): clusters of one class, not both
+        published, with no frame in common and each with a reliable detection, merge while the DP-means
+        objective (squared segment-to-centre distances plus lambda^2 per cluster) falls and one centre fits all
+        their segments within lambda (`segments.merge_segment_groups`). A cluster of cut views alone is left to
+        the truncated rules: the box-centre rays of cut boxes are biased, so a centre that fits them says little. Near-parallel rays of a narrow baseline split an object along its
+        rays: a detection beyond lambda of the centre opens a second cluster, and each centre then stays on its
+        own segments, decimetres from the other and beyond merge_distance. Run at full passes (with
+        consistent_merges). Returns ({gone id: surviving id}, frames whose rows changed)."""
+        removed: dict[int, int] = {}
+        dirty: set[int] = set()
+        if not self.cfg.consistent_merges:
+            return removed, dirty
+        for coco in {t.coco_id for t in self.tracks.values() if not t.confirmed}:
+            ids = np.array(sorted(i for i, t in self.tracks.items() if t.coco_id == coco), dtype=np.int64)
+            if len(ids) < 2:
+                continue
+            rows = np.nonzero(np.isin(self.rows.assign, ids))[0]
+            old = np.searchsorted(ids, self.rows.assign[rows])
+            locked = np.array([self.tracks[int(i)].confirmed for i in ids])
+            whole = np.bincount(old[self.rows.reliable[rows]], minlength=len(ids)) > 0
+            old = np.where(whole[old], old, -1)
+            new, _ = merge_segment_groups(self.rows.segment[rows], old, self.rows.frame[rows],
+                                          self.cfg.cluster_penalty, self.cfg.center_prior_weight, locked)
+            for g in np.unique(new[new >= 0]):
+                together = ids[np.unique(old[new == g])]
+                for other in together[1:]:                   # into the oldest id
+                    removed, dirty = self._merge_pair(int(together[0]), int(other), removed, dirty)
         return removed, dirty
 
     def hit_ratio(self, object_id: int) -> tuple[float, int]:

@@ -6,6 +6,7 @@ import pytest
 from frodo_association.core import (AssociationConfig, Associator, Box3D, box_segments, clip_segments_to_heights,
                                     depth_intervals, detections_from_instances, fit_box, lsq_center,
                                     point_segment_distance, project_boxes, prune_detections)
+from frodo_association.segments import merge_segment_groups
 from frodo_association.synthetic import BoxObject, make_scene, render_instances
 from frodo_common.geometry import invert_transform, look_at, project_points
 
@@ -75,6 +76,28 @@ def test_lsq_center_intersection_midpoint_and_clamping():
     assert x == pytest.approx([1.5, 0.0, 0.0], abs=1e-6)
     cost = lambda q: np.sum(point_segment_distance(q[None], segs) ** 2)       # noqa: E731
     assert cost(x) <= min(cost(x + d) for d in np.eye(3) * 1e-3) + 1e-12
+
+
+def test_merge_segment_groups_follows_the_dp_means_objective():
+    # Four near-parallel rays (a narrow baseline) towards one point, 0.4 m apart at their midpoints: a leader
+    # sweep splits them 3 + 1, and the singleton keeps its centre on its own segment. One centre fits all four
+    # within the penalty, and sum d^2 + penalty^2 per group falls by merging: one group.
+    target = np.array([0.0, 2.0, 0.5])
+    eyes = np.array([[x, 0.0, 1.4] for x in (-0.2, -0.1, 0.0, 0.1)])
+    ends = np.array([[-0.15, 0.0, 0.0], [0.0, 0.05, 0.0], [0.1, -0.05, 0.0], [0.05, 0.4, 0.0]])
+    segs = np.stack([eyes + 0.5 * (target - eyes), eyes + 1.6 * (target - eyes) + ends], axis=1)
+    group = np.array([0, 0, 0, 1])
+    merged, centres = merge_segment_groups(segs, group, np.arange(4), penalty=0.4)
+    assert list(merged) == [0, 0, 0, 0] and centres.shape == (1, 3)
+    assert point_segment_distance(centres, segs)[:, 0].max() < 0.4
+    # Detections of one frame are two objects: never merged, whatever the geometry.
+    assert list(merge_segment_groups(segs, group, np.array([0, 1, 2, 2]), penalty=0.4)[0]) == [0, 0, 0, 1]
+    # Two groups 2 m apart stay apart (a merged centre would be farther than the penalty from their segments);
+    # unassigned segments (-1) are left alone and the ids come back consecutive.
+    far = segs + np.array([2.0, 0.0, 0.0])
+    both = np.concatenate([segs[:2], far[:2], segs[2:3]])
+    out, centres = merge_segment_groups(both, np.array([3, 3, 5, 5, -1]), np.arange(5), penalty=0.4)
+    assert list(out) == [0, 0, 1, 1, -1] and len(centres) == 2
 
 
 def test_dp_means_recovers_the_objects_from_noisy_detections():
@@ -255,6 +278,44 @@ def _run_views(objects, views, cfg):
         assoc.add_frame(k, K, T, SIZE, labels, boxes)
         assoc.refine_boxes()
     return assoc
+
+
+def _split_off(assoc, object_id, from_frame):
+    """Move a cluster's detections of frames >= from_frame into a new unpublished cluster, as a leader opening
+    beyond lambda does; returns (the new id, its rows)."""
+    rows = assoc.members(object_id)
+    late = rows[assoc.rows.frame[rows] >= from_frame]
+    split = assoc._new_track(int(late[0]))
+    assoc.rows.assign[late] = split
+    assoc._update_centers([object_id, split])
+    return split, late
+
+
+def test_a_split_cluster_merges_back_and_two_objects_never_do():
+    # Narrow baseline (inside-out): the camera slides 0.3 m sideways, 2.5 m from two chairs 0.8 m apart.
+    chairs = [BoxObject(CHAIR, np.array([x, 2.5, 0.45]), np.array([0.5, 0.5, 0.9]), 0.0) for x in (-0.4, 0.4)]
+    views = [look_at(np.array([x, 0.0, 1.4]), np.array([x, 2.5, 0.45])) for x in np.linspace(-0.15, 0.15, 12)]
+    assoc = _run_views(chairs, views, AssociationConfig())
+    first, second = (t.object_id for t in assoc.confirmed_tracks())
+    # The first chair's frames 6-11 split off: one centre still fits all its segments, so the DP-means objective
+    # falls by merging them back.
+    split, late = _split_off(assoc, first, 6)
+    assoc.cfg = AssociationConfig(consistent_merges=False)
+    assert assoc.merge_consistent() == ({}, set()) and split in assoc.tracks
+    assoc.cfg = AssociationConfig()
+    # A fragment of cut views alone (no reliable detection) is left to the truncated rules.
+    reliable = assoc.rows.reliable[late].copy()
+    assoc.rows.reliable[late] = False
+    assert assoc.merge_consistent() == ({}, set()) and split in assoc.tracks
+    assoc.rows.reliable[late] = reliable
+    removed, dirty = assoc.merge_consistent()
+    assert removed == {split: first} and dirty == set(range(12))
+    assert split not in assoc.tracks and np.count_nonzero(assoc.rows.assign == first) == 12
+    # The second chair's detections, split off the same way, share their frames with the first chair's and lie
+    # 0.8 m from them: they go back into their own cluster, never into the first chair.
+    split, _ = _split_off(assoc, second, 6)
+    assert assoc.merge_consistent()[0] == {split: second}
+    assert len(assoc.tracks) == 2
 
 
 def test_an_always_truncated_object_is_recovered_as_one_track():
