@@ -165,10 +165,10 @@ CONFIG_DOC: dict[str, str] = {
     'box_overlap_merge': 'At full passes, two published objects of one class whose 3D box footprints overlap by at '
                          'least this fraction of the smaller footprint are merged (the older id survives; > 1: off).',
     'consistent_merges': 'At full passes, clusters of one class, not both published, with no frame in common and '
-                         'each with a reliable detection, '
-                         'merge while the DP-means objective (squared segment-to-centre distances plus '
-                         'cluster_penalty^2 per cluster) falls and one centre fits all their segments within '
-                         'cluster_penalty: an object split along its near-parallel rays (narrow baseline) becomes one.',
+                         'each with a reliable detection, merge while the DP-means objective (squared '
+                         'segment-to-centre distances plus cluster_penalty^2 per cluster) falls and one centre fits '
+                         'all their segments within cluster_penalty: an object split along its near-parallel rays '
+                         '(narrow baseline) becomes one.',
     'confirm_distance': 'Publishing: a detection is consistent with its cluster when its segment passes within this '
                         'distance (m) of the cluster centre; a cluster needs consistent detections in min_track_views '
                         'frames.',

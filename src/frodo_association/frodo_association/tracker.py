@@ -776,14 +776,15 @@ class Associator:
         return removed, dirty
 
     def merge_consistent(self) -> tuple[dict[int, int], set[int]]:
-        """DP-means merges of a split object (the project's own extension): clusters of one class, not both
-        published, with no frame in common and each with a reliable detection, merge while the DP-means
-        objective (squared segment-to-centre distances plus lambda^2 per cluster) falls and one centre fits all
-        their segments within lambda (`segments.merge_segment_groups`). A cluster of cut views alone is left to
-        the truncated rules: the box-centre rays of cut boxes are biased, so a centre that fits them says little. Near-parallel rays of a narrow baseline split an object along its
-        rays: a detection beyond lambda of the centre opens a second cluster, and each centre then stays on its
-        own segments, decimetres from the other and beyond merge_distance. Run at full passes (with
-        consistent_merges). Returns ({gone id: surviving id}, frames whose rows changed)."""
+        """DP-means merges of a split object (the project's own extension). Near-parallel rays of a narrow
+        baseline split an object along its rays: a detection beyond lambda of the centre opens a second cluster,
+        and each centre then stays on its own segments, decimetres from the other and beyond merge_distance.
+        Clusters of one class, not both published, with no frame in common and each with a reliable detection,
+        merge while the DP-means objective (squared segment-to-centre distances plus lambda^2 per cluster) falls
+        and one centre fits all their segments within lambda (`segments.merge_segment_groups`). A cluster of cut
+        views alone is left to the truncated rules: the box-centre rays of cut boxes are biased, so a centre that
+        fits them says little. Run at full passes (with consistent_merges). Returns ({gone id: surviving id},
+        frames whose rows changed)."""
         removed: dict[int, int] = {}
         dirty: set[int] = set()
         if not self.cfg.consistent_merges:
