@@ -12,7 +12,7 @@ Hypotheses (centre, scale, yaw):
 - centre: the input box centre; the least-squares intersection of the rays through the detection boxes'
   centres (robust: Huber-reweighted, views whose detection touches the image border left out); and points
   on the mean viewing direction through it (every 15 cm up to +-60 cm: depth is the weakly constrained
-  direction of a walk, and on inside-out walks the association box is 30-60 cm off along it);
+  direction of a walk, and an association box placed from one side can be decimetres off along it);
 - scale: per centre and yaw, the median over views of observed / predicted detection-box diagonal (the
   projected size is nearly linear in the scale at a fixed centre; one fixed-point refinement), times
   {1/1.25, 1, 1.25}; and the input box's scale;
