@@ -104,3 +104,20 @@ def test_synthetic_room_section_times_frodo_reconstruct_and_reads_its_scores(tmp
     doc = {'machine': bench.machine_info('cpu'), 'room': room}
     assert f"frodo reconstruct {room['wall_s']} s wall" in bench.summary(doc)
     assert '## Synthetic room of 1 objects' in bench.markdown_page(doc, 'figures')
+
+
+def test_before_section_runs_a_commits_code_and_this_checkouts_on_one_bag(tmp_path):
+    bag = tmp_path / 'room.mcap'
+    cli.main(['synth', str(bag), '--objects', '1', '--frames', '12', '--seed', '5', '--quiet'])
+    # HEAD: a commit every clone holds (BEFORE_SPEED_WORK is not in a shallow one)
+    result = bench.before_and_now(bag, tmp_path / 'before', revision='HEAD')
+    code = tmp_path / 'before' / 'code'
+    assert result['code'] == str(code) and (code / 'src' / 'frodo_optim' / 'frodo_optim' / 'sparse.py').is_file()
+    for run in (result['before'], result['now']):
+        assert run['wall_s'] > 0 and run['ground_truth'] == 1 and sum(run['final_stages'].values()) >= run['found']
+    assert result['speed_up'] == round(result['before']['wall_s'] / result['now']['wall_s'], 2)
+    doc = {'machine': bench.machine_info('cpu'), 'before': result}
+    assert f"({result['speed_up']}x)" in bench.summary(doc)
+    assert '## Before the speed work (issue 28)' in bench.markdown_page(doc, 'figures')
+    assert bench.before_and_now(bag, tmp_path / 'none', revision='0' * 40) == {
+        'skipped': 'commit 0000000000 is not in a git checkout here (run from a full clone of the repository)'}

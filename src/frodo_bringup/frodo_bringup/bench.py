@@ -21,6 +21,11 @@ Sections (each a function returning plain data; a section that cannot run says w
 - `room`: a synthetic room of 20 objects and 300 frames (`frodo synth --objects 20 --frames 300 --seed 7777`,
   the default walk) reconstructed offline by `frodo reconstruct` as a user runs it (its own process, start-up
   included): wall seconds, objects found, false positives, CD and F1@5cm (`--quick`: 8 objects, 150 frames).
+- `before`: the demo bag reconstructed offline by `frodo reconstruct` (its own process, start-up included, no
+  Rerun recording) with the code of the last commit before issue 28 (speed; `BEFORE_SPEED_WORK`, exported by
+  `git archive` and put first on PYTHONPATH) and with this checkout's, one after the other in the same run: wall
+  seconds, their ratio, final stages and scores of both (skipped with a note outside a git checkout that holds
+  that commit, e.g. a shallow clone).
 - `soak` (not in the default set: minutes to an hour): `soak_frames` frames of the demo bag repeated with shifted
   stamps at `soak_rate` x real time through the whole graph; peak and growing memory per node, backlog, latency
   per frame, /diagnostics intervals (frodo_bringup.soak; OUT/soak/soak.json + soak.png).
@@ -55,6 +60,8 @@ import numpy as np
 BENCH_DIR = Path('bench')
 DEMO_BAG = Path('bags/demo_walk.mcap')
 # Paper figures (supplementary Table "Speed comparison", 60-frame sequence; hardware not stated there).
+# The last commit before issue 28 (speed): the `before` section's baseline.
+BEFORE_SPEED_WORK = 'f376e48735b1aef131a020b60174c96c39bd22d3'
 PAPER = {'sparse_s_per_iteration': 0.07, 'dense_s_per_iteration': 4.96, 'pmo_s_per_iteration': 12.59,
          'sparse_iterations': 200, 'dense_iterations': 100}
 
@@ -503,6 +510,53 @@ def synthetic_room(out: Path, objects: int, frames: int, seed: int = 7777) -> di
             'f1': round(overall['f1'], 1)}
 
 
+def _reconstruct_timed(bag: Path, out: Path, env: dict[str, str] | None = None) -> dict[str, Any]:
+    """`frodo reconstruct BAG --out OUT --quiet` in a process of its own: wall seconds (start-up included), the
+    final stages and the CONTRACT.md scores of its eval.json."""
+    started = time.perf_counter()
+    done = subprocess.run([sys.executable, '-m', 'frodo_bringup.cli', 'reconstruct', str(bag), '--out', str(out),
+                           '--quiet'], capture_output=True, text=True, env=env)
+    wall = time.perf_counter() - started
+    if done.returncode != 0:
+        raise RuntimeError(f'frodo reconstruct exited {done.returncode}: {done.stdout[-400:]}{done.stderr[-400:]}')
+    stages: dict[str, int] = {}
+    for obj in json.loads((out / 'objects.json').read_text())['objects']:
+        stages[obj['stage']] = stages.get(obj['stage'], 0) + 1
+    overall = json.loads((out / 'eval.json').read_text())['overall'] if (out / 'eval.json').is_file() else {}
+    return {'wall_s': round(wall, 1), 'final_stages': stages, 'found': overall.get('n_matched'),
+            'ground_truth': overall.get('n_gt'), 'cd_cm': None if 'cd_cm' not in overall else round(overall['cd_cm'], 2),
+            'f1': None if 'f1' not in overall else round(overall['f1'], 1)}
+
+
+def before_and_now(bag: Path, out: Path, revision: str = BEFORE_SPEED_WORK) -> dict[str, Any]:
+    """The `before` section (module docstring): the same bag reconstructed offline by the code of `revision` and
+    by this checkout's, in that order."""
+    def git(*args: str, **kw) -> subprocess.CompletedProcess:
+        return subprocess.run(['git', *args], capture_output=True, cwd=Path.cwd(), **kw)
+
+    try:
+        known = git('cat-file', '-e', f'{revision}^{{commit}}').returncode == 0
+    except FileNotFoundError:
+        known = False
+    if not known:
+        return {'skipped': f'commit {revision[:10]} is not in a git checkout here (run from a full clone of the '
+                           'repository)'}
+    code = out / 'code'
+    if code.exists():
+        subprocess.run(['rm', '-rf', str(code)], check=True)
+    code.mkdir(parents=True)
+    archive = git('archive', revision)
+    if archive.returncode != 0:
+        return {'error': f'git archive {revision[:10]} failed: {archive.stderr.decode()[-300:]}'}
+    subprocess.run(['tar', '-x', '-C', str(code)], input=archive.stdout, check=True)
+    packages = sorted(str(p) for p in (code / 'src').glob('frodo_*') if (p / p.name).is_dir())
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(packages + [os.environ.get('PYTHONPATH', '')]).rstrip(os.pathsep))
+    before = _reconstruct_timed(bag, out / 'before', env)
+    now = _reconstruct_timed(bag, out / 'now')
+    return {'bag': str(bag), 'revision': revision[:10], 'code': str(code), 'before': before, 'now': now,
+            'speed_up': round(before['wall_s'] / now['wall_s'], 2)}
+
+
 def run_all(out: Path, quick: bool, device: str, sections: list[str], log: Callable[[str], None],
             soak_frames: int = 10_000, soak_rate: float = 2.0, bag: str | os.PathLike = DEMO_BAG) -> dict[str, Any]:
     """Every requested section, each timed and isolated (an exception is recorded, the others still run);
@@ -520,6 +574,7 @@ def run_all(out: Path, quick: bool, device: str, sections: list[str], log: Calla
         'association': lambda: association_latency([2, 10] if quick else [1, 2, 5, 10, 20], 40 if quick else 200),
         'end_to_end': lambda: end_to_end(bag, out / 'demo_run', rate=1.0),
         'room': lambda: synthetic_room(out / 'room', *((8, 150) if quick else (20, 300))),
+        'before': lambda: before_and_now(demo_bag(bag), out / 'before'),
         'soak': lambda: _soak(demo_bag(bag), out / 'soak', soak_frames, soak_rate, doc['machine'], log),
         'optim_workers': lambda: _optim_workers(demo_bag(bag), out / 'optim_workers', quick, log),
     }
@@ -553,7 +608,7 @@ def _optim_workers(bag: Path, out: Path, quick: bool, log: Callable[[str], None]
 
 
 SECTIONS = ('decoder', 'roofline', 'stages', 'bag_read', 'sparse', 'dense', 'association', 'end_to_end',
-            'room')   # default
+            'room', 'before')   # default
 ALL_SECTIONS = SECTIONS + ('soak', 'optim_workers')
 
 
@@ -606,6 +661,14 @@ def summary(doc: dict[str, Any]) -> str:
                      f"{room['false_positives']} FP, CD {room['cd_cm']} cm, F1@5cm {room['f1']}")
     elif room:
         lines.append(f"synthetic room: {room.get('error')}")
+    b = doc.get('before', {})
+    if 'speed_up' in b:
+        lines.append(f"offline demo, code before issue 28 ({b['revision']}) -> now: {b['before']['wall_s']} -> "
+                     f"{b['now']['wall_s']} s wall ({b['speed_up']}x), F1@5cm {b['before']['f1']} -> {b['now']['f1']}, "
+                     f"CD {b['before']['cd_cm']} -> {b['now']['cd_cm']} cm, final stages {b['before']['final_stages']} "
+                     f"-> {b['now']['final_stages']}")
+    elif b:
+        lines.append(f"before/now: {b.get('skipped') or b.get('error')}")
     e = doc.get('end_to_end', {})
     if 'wall_s' in e:
         lines.append(f"demo run: exit {e['exit_code']}, {e['objects']} objects, {e['wall_s']} s wall "
@@ -699,6 +762,18 @@ def markdown_page(doc: dict[str, Any], plots_dir: str) -> str:
                   f"{room['wall_s']} s wall for `frodo reconstruct` (start-up included); {room['found']} of "
                   f"{room['ground_truth']} objects found, {room['false_positives']} false positives, CD "
                   f"{room['cd_cm']} cm, F1@5cm {room['f1']}.", '']
+    b = doc.get('before', {})
+    if 'speed_up' in b:
+        lines += ['## Before the speed work (issue 28), measured in this run', '',
+                  f"`frodo reconstruct {Path(b['bag']).name}` (a process of its own, start-up included) with the code "
+                  f"of commit `{b['revision']}`, the last before issue 28, then with this checkout's:", '',
+                  '| code | wall s | final stages | found | CD cm | F1@5cm |', '|---|---|---|---|---|---|']
+        for name, label in (('before', f"`{b['revision']}` (before)"), ('now', 'this checkout')):
+            r = b[name]
+            stages = ', '.join(f'{n} {k}' for k, n in r['final_stages'].items())
+            lines.append(f"| {label} | {r['wall_s']} | {stages} | {r['found']} of {r['ground_truth']} | "
+                         f"{r['cd_cm']} | {r['f1']} |")
+        lines += ['', f"Speed-up: {b['speed_up']}x.", '']
     e = doc.get('end_to_end', {})
     if 'wall_s' in e:
         lines += ['## Live demo run (`frodo run`, real time)', '',
