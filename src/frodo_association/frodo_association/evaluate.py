@@ -182,11 +182,37 @@ def run_scene(scene: SynthScene, cfg: AssociationConfig, filt: FilterConfig,
     return res
 
 
+def placement_evidence(assoc: Associator, rows: np.ndarray, obj: BoxObject) -> tuple[float, float | None]:
+    """What fixes an object's depth along the view, from its detections (`rows`) and its ground truth: the
+    horizontal angle (degrees) over which its detections' cameras see its centre (a few degrees: the rays nearly
+    parallel), and the median, over its detections with an uncut bottom edge, of the height between its box's
+    projected bottom and the detection's bottom as a fraction of its projected height (None without such a
+    detection; about 0 when the detections reach its floor contact, 0.3-0.7 when the masks miss a chair's legs or
+    an unlabelled occluder hides its lower part: then the box fit puts it too far)."""
+    frames = assoc.rows.frame[rows]
+    T = assoc.frames.T_camera_world[frames]
+    cams = np.einsum('fij,fj->fi', -np.transpose(T[:, :3, :3], (0, 2, 1)), T[:, :3, 3])     # camera centres
+    look = obj.center[:2] - cams[:, :2]
+    bearing = np.arctan2(look[:, 1], look[:, 0])
+    mean = np.arctan2(np.sin(bearing).mean(), np.cos(bearing).mean())
+    relative = np.angle(np.exp(1j * (bearing - mean)))
+    spread = float(np.degrees(relative.max() - relative.min())) if len(rows) else 0.0
+    uncut = assoc.rows.fit_edges[rows, 3]
+    if not uncut.any():
+        return spread, None
+    corners = obj.corners()
+    pc = np.einsum('fij,cj->fci', T[uncut, :3, :3], corners) + T[uncut, None, :3, 3]       # (F, 8, 3)
+    K = assoc.frames.K[frames[uncut]]
+    v = K[:, 1, 1, None] * pc[..., 1] / np.maximum(pc[..., 2], 1e-6) + K[:, 1, 2, None]
+    height = np.maximum(v.max(1) - v.min(1), 1.0)
+    return spread, float(np.median((v.max(1) - assoc.rows.box[rows[uncut], 3]) / height))
+
+
 def trace_objects(assoc: Associator, scene: SynthScene, gt: np.ndarray, tracks: list, match: dict[int, int],
                   far: float = 0.5) -> list[str]:
     """One line per ground-truth object: its detections (reliable / truncated / other; how many with a surface
     depth), the clusters holding them, and its fate: published (box centre error; 'placement' when farther than
-    `far` m), or why not: never detected, never clustered, taken by another object's track, or the first
+    `far` m, with `placement_evidence`), or why not: never detected, never clustered, taken by another object's track, or the first
     publishing condition its main cluster fails (`Associator.publish_blocker`). gt: (rows,) object index of every detection row (-1: none);
     tracks / match: the published tracks and {track index: object index} of `run_scene`."""
     from frodo_common.categories import category_by_id
@@ -208,8 +234,11 @@ def trace_objects(assoc: Associator, scene: SynthScene, gt: np.ndarray, tracks: 
             t = tracks[by_object[obj_index]]
             err = np.linalg.norm(t.box.center - obj.center) if t.box is not None else float('nan')
             kept = int(np.count_nonzero(assoc.rows.kept[assoc.members(t.object_id)]))
-            fate = (f'published as {t.object_id} with {kept} kept detections, box centre {err:.2f} m off'
-                    + (' (placement)' if err > far else ''))
+            fate = f'published as {t.object_id} with {kept} kept detections, box centre {err:.2f} m off'
+            if err > far:
+                spread, gap = placement_evidence(assoc, rows, obj)
+                fate += (f' (placement: seen over {spread:.0f} deg, ' + ('no uncut bottom edge)' if gap is None else
+                         f'detection bottoms {gap:.2f} of its height above its bottom)'))
         elif len(rows) == 0:
             fate = 'never detected (or no detection matched it)'
         else:

@@ -50,3 +50,32 @@ def test_bag_frames_carry_the_latest_slam_map_stamped_no_later(tmp_path):
     read, notes = scene_from_bag(str(path))
     assert [None if f.landmarks is None else len(f.landmarks) for f in read.frames] == [None, 4, 4, 4, 7, 7]
     assert '2 SLAM maps' in notes[-1]
+
+
+def _raise_bottoms(scene, fraction: float) -> None:
+    """Cut the lower `fraction` of every instance's mask in every frame (masks that miss legs)."""
+    for frame in scene.frames:
+        for label in np.unique(frame.instances[frame.instances > 0]):
+            rows = np.nonzero((frame.instances == label).any(1))[0]
+            cut = int(round(rows.max() - fraction * (rows.max() - rows.min())))
+            frame.instances[cut + 1:][frame.instances[cut + 1:] == label] = 0
+
+
+def test_trace_says_what_fixed_a_misplaced_objects_depth(monkeypatch):
+    from functools import partial
+    from frodo_association import evaluate
+    # every published object traced as misplaced (far 0), to read the evidence the trace gives
+    monkeypatch.setattr(evaluate, 'trace_objects', partial(evaluate.trace_objects, far=0.0))
+    scene = make_scene(2, seed=3, n_frames=30)
+    gaps = {}
+    for fraction in (0.0, 0.5):
+        if fraction:
+            _raise_bottoms(scene, fraction)
+        lines = run_scene(scene, AssociationConfig(), FilterConfig(), trace=True).trace
+        published = [line for line in lines if 'published as' in line]
+        assert published and all('(placement: seen over ' in line for line in published)
+        gaps[fraction] = [float(line.split('detection bottoms ')[1].split(' ')[0]) for line in published]
+        spreads = [float(line.split('seen over ')[1].split(' ')[0]) for line in published]
+        assert all(s > 5 for s in spreads)     # a walk past the objects
+    assert all(abs(g) < 0.1 for g in gaps[0.0])          # masks reach the floor contact
+    assert all(0.35 < g < 0.65 for g in gaps[0.5])       # half the height hidden at the bottom
