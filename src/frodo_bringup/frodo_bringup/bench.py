@@ -494,28 +494,20 @@ def synthetic_room(out: Path, objects: int, frames: int, seed: int = 7777) -> di
     process of its own, as a user runs it) and read its scores (eval.json, CONTRACT.md protocol)."""
     out.mkdir(parents=True, exist_ok=True)
     bag = out / f'room{objects}.mcap'
-    cli = [sys.executable, '-m', 'frodo_bringup.cli']
-    subprocess.run(cli + ['synth', str(bag), '--objects', str(objects), '--frames', str(frames), '--seed', str(seed),
-                          '--quiet'], check=True, capture_output=True, text=True)
-    started = time.perf_counter()
-    done = subprocess.run(cli + ['reconstruct', str(bag), '--out', str(out / 'reconstruct'), '--no-recording'],
-                          capture_output=True, text=True)
-    wall = time.perf_counter() - started
-    if done.returncode != 0:
-        return {'error': f'frodo reconstruct exited {done.returncode}: {done.stdout[-400:]}{done.stderr[-400:]}'}
-    overall = json.loads((out / 'reconstruct' / 'eval.json').read_text())['overall']
-    return {'objects': objects, 'frames': frames, 'seed': seed, 'wall_s': round(wall, 1),
-            'found': overall['n_matched'], 'ground_truth': overall['n_gt'],
-            'false_positives': overall['false_positives'], 'cd_cm': round(overall['cd_cm'], 2),
-            'f1': round(overall['f1'], 1)}
+    subprocess.run([sys.executable, '-m', 'frodo_bringup.cli', 'synth', str(bag), '--objects', str(objects),
+                    '--frames', str(frames), '--seed', str(seed), '--quiet'], check=True, capture_output=True, text=True)
+    run = _reconstruct_timed(bag, out / 'reconstruct', options=('--no-recording',))
+    return {'objects': objects, 'frames': frames, 'seed': seed} | {k: run[k] for k in (
+        'wall_s', 'found', 'ground_truth', 'false_positives', 'cd_cm', 'f1')}
 
 
-def _reconstruct_timed(bag: Path, out: Path, env: dict[str, str] | None = None) -> dict[str, Any]:
-    """`frodo reconstruct BAG --out OUT --quiet` in a process of its own: wall seconds (start-up included), the
-    final stages and the CONTRACT.md scores of its eval.json."""
+def _reconstruct_timed(bag: Path, out: Path, env: dict[str, str] | None = None,
+                       options: tuple[str, ...] = ()) -> dict[str, Any]:
+    """`frodo reconstruct BAG --out OUT --quiet [options]` in a process of its own: wall seconds (start-up
+    included), the final stages and the CONTRACT.md scores of its eval.json (RuntimeError when it fails)."""
     started = time.perf_counter()
     done = subprocess.run([sys.executable, '-m', 'frodo_bringup.cli', 'reconstruct', str(bag), '--out', str(out),
-                           '--quiet'], capture_output=True, text=True, env=env)
+                           '--quiet', *options], capture_output=True, text=True, env=env)
     wall = time.perf_counter() - started
     if done.returncode != 0:
         raise RuntimeError(f'frodo reconstruct exited {done.returncode}: {done.stdout[-400:]}{done.stderr[-400:]}')
@@ -523,9 +515,10 @@ def _reconstruct_timed(bag: Path, out: Path, env: dict[str, str] | None = None) 
     for obj in json.loads((out / 'objects.json').read_text())['objects']:
         stages[obj['stage']] = stages.get(obj['stage'], 0) + 1
     overall = json.loads((out / 'eval.json').read_text())['overall'] if (out / 'eval.json').is_file() else {}
-    return {'wall_s': round(wall, 1), 'final_stages': stages, 'found': overall.get('n_matched'),
-            'ground_truth': overall.get('n_gt'), 'cd_cm': None if 'cd_cm' not in overall else round(overall['cd_cm'], 2),
-            'f1': None if 'f1' not in overall else round(overall['f1'], 1)}
+    scores = {'found': 'n_matched', 'ground_truth': 'n_gt', 'false_positives': 'false_positives'}
+    return {'wall_s': round(wall, 1), 'final_stages': stages} | {k: overall.get(v) for k, v in scores.items()} | {
+        'cd_cm': None if 'cd_cm' not in overall else round(overall['cd_cm'], 2),
+        'f1': None if 'f1' not in overall else round(overall['f1'], 1)}
 
 
 def before_and_now(bag: Path, out: Path, revision: str = BEFORE_SPEED_WORK) -> dict[str, Any]:
