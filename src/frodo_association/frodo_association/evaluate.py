@@ -212,9 +212,10 @@ def trace_objects(assoc: Associator, scene: SynthScene, gt: np.ndarray, tracks: 
                   far: float = 0.5) -> list[str]:
     """One line per ground-truth object: its detections (reliable / truncated / other; how many with a surface
     depth), the clusters holding them, and its fate: published (box centre error; 'placement' when farther than
-    `far` m, with `placement_evidence`), or why not: never detected, never clustered, taken by another object's track, or the first
-    publishing condition its main cluster fails (`Associator.publish_blocker`). gt: (rows,) object index of every detection row (-1: none);
-    tracks / match: the published tracks and {track index: object index} of `run_scene`."""
+    `far` m, with `placement_evidence`), or why not: never detected, never clustered, taken by another object's
+    track, or the first publishing condition its main cluster fails (`Associator.publish_blocker`). gt: (rows,)
+    object index of every detection row (-1: none); tracks / match: the published tracks and {track index: object
+    index} of `run_scene`."""
     from frodo_common.categories import category_by_id
 
     lines = []

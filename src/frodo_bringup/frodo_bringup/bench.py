@@ -495,7 +495,8 @@ def synthetic_room(out: Path, objects: int, frames: int, seed: int = 7777) -> di
     out.mkdir(parents=True, exist_ok=True)
     bag = out / f'room{objects}.mcap'
     subprocess.run([sys.executable, '-m', 'frodo_bringup.cli', 'synth', str(bag), '--objects', str(objects),
-                    '--frames', str(frames), '--seed', str(seed), '--quiet'], check=True, capture_output=True, text=True)
+                    '--frames', str(frames), '--seed', str(seed), '--quiet'],
+                   check=True, capture_output=True, text=True)
     run = _reconstruct_timed(bag, out / 'reconstruct', options=('--no-recording',))
     return {'objects': objects, 'frames': frames, 'seed': seed} | {k: run[k] for k in (
         'wall_s', 'found', 'ground_truth', 'false_positives', 'cd_cm', 'f1')}
