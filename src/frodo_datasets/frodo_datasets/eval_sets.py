@@ -29,7 +29,8 @@ tables and 3 chairs, nearly every chair pushed under a table on the side away fr
 - `realwalk-tune` (for tuning): 12 rooms, seeds 8400-8411, training families only.
 
 Variants (`VARIANTS`) are the same rooms under different conditions: `full` (every condition of the set's
-preset, `EvalSet.preset`: `handheld` or `realwalk`, 35 keyframes), `full100` (the same, 100 views), and one
+preset, `EvalSet.preset`: `handheld` or `realwalk`, 35 keyframes), `full100` (the same, 100 views), `full640`
+(the same at 640x480, a Kinect's size, instead of 320x240, with the detector's pixel errors doubled), and one
 condition of the `handheld` preset at a time on top of `plain` (the
 project's usual regime: a room walk of 60 consecutive clean frames): `truncation` (close-range hand-held
 path, 100 views, clean), `keyframes` (the same path at 35 keyframes), `occlusion` (chairs pushed under
@@ -120,9 +121,23 @@ _WALK_DRIFT = replace(_HANDHELD['pose_noise'], drift_per_second=False,
                       drift_rot_deg=_HANDHELD['pose_noise'].drift_rot_deg * np.sqrt(115 / 60),
                       drift_trans_m=_HANDHELD['pose_noise'].drift_trans_m * np.sqrt(115 / 60))
 
+
+def at_image_scale(config: SynthConfig, factor: int) -> SynthConfig:
+    """The same capture with images `factor` times as wide and high (the field of view kept) and the detector's
+    pixel errors (erosion/dilation, outline displacement, bleeding) scaled with them: the same relative mask
+    errors on more pixels, so that a result that changes measures the method's own pixel constants."""
+    if factor == 1:
+        return config
+    noise = config.mask_noise
+    return replace(config, width=config.width * factor, height=config.height * factor,
+                   mask_noise=replace(noise, morph_px=noise.morph_px * factor, boundary_px=noise.boundary_px * factor,
+                                      bleed_px=noise.bleed_px * factor))
+
+
 VARIANTS: dict[str, Callable[[SynthConfig], SynthConfig]] = {
     'full': _variant(**_HANDHELD),
     'full100': _variant(**{**_HANDHELD, 'frames': 100}),
+    'full640': lambda config: at_image_scale(_variant(**_HANDHELD)(config), 2),
     'plain': _variant(**_PLAIN),
     'truncation': _variant(scene='handheld', frames=100),
     'keyframes': _variant(scene='handheld', frames=35),
@@ -136,15 +151,17 @@ VARIANTS: dict[str, Callable[[SynthConfig], SynthConfig]] = {
 }
 
 
-PRESET_VARIANTS = {'full': None, 'full100': 100}   # variant -> frames (None: the preset's) on the set's preset
+# variant -> (frames (None: the preset's), image scale) on the set's preset
+PRESET_VARIANTS = {'full': (None, 1), 'full100': (100, 1), 'full640': (None, 2)}
 
 
 def scene_config(eval_set: EvalSet, seed: int, objects: int, variant: str) -> SynthConfig:
-    """SynthConfig of one room of `eval_set` under `variant` (`full`, `full100`: the set's preset)."""
+    """SynthConfig of one room of `eval_set` under `variant` (`full`, `full100`, `full640`: the set's preset)."""
     base = SynthConfig(objects=objects, classes=eval_set.classes, seed=seed, family_set=eval_set.family_set)
     if variant in PRESET_VARIANTS:
-        frames = PRESET_VARIANTS[variant]
-        return replace(base, **{**preset_kwargs(eval_set.preset), **({'frames': frames} if frames else {})})
+        frames, scale = PRESET_VARIANTS[variant]
+        config = replace(base, **{**preset_kwargs(eval_set.preset), **({'frames': frames} if frames else {})})
+        return at_image_scale(config, scale)
     return VARIANTS[variant](base)
 
 

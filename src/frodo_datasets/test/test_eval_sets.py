@@ -42,6 +42,14 @@ def test_variants_change_one_condition_at_a_time():
     configs = {v: asdict(scene_config(held, 9100, 3, v)) for v in VARIANTS}
     assert configs['full']['scene'] == 'handheld' and configs['full']['frames'] == 35
     assert configs['full100']['frames'] == 100
+    full, big = configs['full'], configs['full640']
+    assert (big['width'], big['height']) == (640, 480) and (full['width'], full['height']) == (320, 240)
+    assert {k for k in full if big[k] != full[k]} == {'width', 'height', 'mask_noise'}
+    assert {k for k in full['mask_noise'] if big['mask_noise'][k] != full['mask_noise'][k]} == \
+        {'morph_px', 'boundary_px', 'bleed_px'}
+    assert big['mask_noise']['bleed_px'] == 2 * full['mask_noise']['bleed_px']
+    walk = SETS['realwalk-tune']
+    assert scene_config(walk, walk.seeds[0], 4, 'full640').scene == scene_config(walk, walk.seeds[0], 4, 'full').scene
     plain = configs['plain']
     changed = {v: {k for k in plain if configs[v][k] != plain[k]}
                for v in ('occlusion', 'masks', 'drift', 'landmarks', 'camera')}
