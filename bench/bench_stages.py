@@ -2,6 +2,7 @@
 (fused, sparse, dense) scored against the bag's ground truth, per object.
 
     .venv/bin/python bench/bench_stages.py BAG.mcap [BAG.mcap ...] [--params FILE] [--json OUT]
+        [--oracle] [--dense-seeds 0,1,2] [--threads N]
 
 Each bag is reconstructed as `frodo reconstruct` does (`frodo_bringup.pipeline.reconstruct`, deterministic),
 with the estimate of every stage kept as it ends. The final map is matched to the ground truth with the
@@ -18,6 +19,13 @@ can give, to show what each kind of error costs: moved horizontally so that its 
 truth's ("centred"), then the best of four quarter turns about the vertical through that centre ("turned"), or
 instead the best uniform scale in 0.75-1.33 about its bottom centre ("scaled"). What is left after them is
 the shape.
+
+The last line sums the set up: objects found of all ground-truth objects, the mean final F1@5cm per class, and
+the F1 with every missed object counted as 0. Single objects' figures move with the dense stage's pixel draws
+(`DenseConfig.seed`) and with torch's thread count (floating-point order) by up to tens of points, so a change is
+judged over several draws: `--dense-seeds 0,1,2` runs the whole set once per seed and ends with each seed's
+summary and their mean; `--threads N` fixes torch's threads (results repeat for a given count; two one-thread
+runs side by side use 2 cores without the slowdown of two multi-threaded ones).
 """
 from __future__ import annotations
 
@@ -28,6 +36,7 @@ reproducible_math()      # before torch: the same bag gives the same figures
 import argparse                                               # noqa: E402
 import json                                                   # noqa: E402
 import time                                                   # noqa: E402
+from dataclasses import replace                               # noqa: E402
 from pathlib import Path                                      # noqa: E402
 
 import numpy as np                                            # noqa: E402
@@ -59,8 +68,8 @@ def oracle_f1(mesh, truth) -> dict[str, float]:
             'scaled': max(f1((centred - base) * k + base) for k in ORACLE_SCALES)}
 
 
-def score_bag(bag: str, config: PipelineConfig | None, oracle: bool = False) -> tuple[list[dict], str]:
-    """(one row per matched object, the bag's summary line)."""
+def score_bag(bag: str, config: PipelineConfig | None, oracle: bool = False) -> tuple[list[dict], str, int]:
+    """(one row per matched object, the bag's summary line, its number of ground-truth objects)."""
     gt = load_ground_truth(bag)
     meshes: dict[int, dict[str, object]] = {}
 
@@ -92,7 +101,31 @@ def score_bag(bag: str, config: PipelineConfig | None, oracle: bool = False) -> 
     missed = [truth[i].class_name for i in report.unmatched_gt]
     line = (f'{Path(bag).name}: {len(report.pairs)}/{len(gt)} found, {len(report.unmatched_pred)} FP, '
             f'F1 {report.overall.f1:.1f}, missed {missed}, {seconds:.0f} s')
-    return rows, line
+    return rows, line, len(gt)
+
+
+def final_f1(row: dict) -> float:
+    """F1@5cm of the object's final mesh (its last stage's)."""
+    return next(row[name]['f1'] for name in reversed(STAGES) if name in row)
+
+
+def summary(rows: list[dict], n_truth: int) -> dict:
+    """Objects found, mean final F1 per class and the F1 with every missed object as 0."""
+    out = {'found': len(rows), 'objects': n_truth,
+           'misses_as_0': sum(final_f1(r) for r in rows) / max(n_truth, 1)}
+    for cls in sorted({r['class'] for r in rows}):
+        out[cls] = float(np.mean([final_f1(r) for r in rows if r['class'] == cls]))
+    return out
+
+
+def summary_line(s: dict) -> str:
+    classes = ', '.join(f'{k} {v:.1f}' for k, v in s.items() if k not in ('found', 'objects', 'misses_as_0'))
+    return f"found {s['found']:.3g}/{s['objects']:.3g}, final F1 {classes}, F1 with misses as 0 {s['misses_as_0']:.1f}"
+
+
+def with_dense_seed(config: PipelineConfig | None, seed: int) -> PipelineConfig:
+    config = config or PipelineConfig()
+    return replace(config, optim=replace(config.optim, dense=replace(config.optim.dense, seed=seed)))
 
 
 def object_line(row: dict) -> str:
@@ -130,16 +163,39 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--json', help='write the per-object rows here')
     parser.add_argument('--oracle', action='store_true',
                         help='also score each final mesh after ground-truth corrections (centred, turned, scaled)')
+    parser.add_argument('--dense-seeds', default='',
+                        help='comma-separated dense-stage seeds: the whole set once per seed (default: the config\'s)')
+    parser.add_argument('--threads', type=int, default=0, help='torch threads (default: torch\'s own)')
     args = parser.parse_args(argv)
+    if args.threads > 0:
+        import torch
+        torch.set_num_threads(args.threads)
     config = PipelineConfig.from_params_files(args.params) if args.params else None
+    seeds = [int(s) for s in args.dense_seeds.split(',') if s.strip()] or [None]
     rows: list[dict] = []
-    for bag in args.bags:
-        bag_rows, line = score_bag(bag, config, args.oracle)
-        print(line, flush=True)
-        for row in bag_rows:
-            print(object_line(row), flush=True)
-        rows += bag_rows
-    print('\n'.join(pooled_lines(rows)))
+    summaries = []
+    for seed in seeds:
+        run_config = config if seed is None else with_dense_seed(config, seed)
+        prefix = '' if seed is None else f'[dense seed {seed}] '
+        seed_rows: list[dict] = []
+        n_truth = 0
+        for bag in args.bags:
+            bag_rows, line, n_gt = score_bag(bag, run_config, args.oracle)
+            print(prefix + line, flush=True)
+            for row in bag_rows:
+                print(object_line(row), flush=True)
+                if seed is not None:
+                    row['dense_seed'] = seed
+            seed_rows += bag_rows
+            n_truth += n_gt
+        print('\n'.join(pooled_lines(seed_rows)))
+        summaries.append(summary(seed_rows, n_truth))
+        print(prefix + summary_line(summaries[-1]), flush=True)
+        rows += seed_rows
+    if len(seeds) > 1:
+        keys = sorted(set().union(*summaries), key=lambda k: list(summaries[0]).index(k) if k in summaries[0] else 99)
+        mean = {k: float(np.mean([s[k] for s in summaries if k in s])) for k in keys}
+        print(f'mean over dense seeds {",".join(map(str, seeds))}: ' + summary_line(mean))
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1) + '\n')
     return 0

@@ -16,8 +16,8 @@ def _bench():
 
 def test_every_stage_of_the_orbit_bags_object_is_scored(capsys):
     bench = _bench()
-    rows, line = bench.score_bag(str(REPO / 'bags' / 'demo_orbit.mcap'), None)
-    assert line.startswith('demo_orbit.mcap: 1/1 found, 0 FP')
+    rows, line, n_truth = bench.score_bag(str(REPO / 'bags' / 'demo_orbit.mcap'), None)
+    assert line.startswith('demo_orbit.mcap: 1/1 found, 0 FP') and n_truth == 1
     (row,) = rows
     assert set(bench.STAGES) <= set(row)
     assert row['assoc_cm'] < 10 and row['dense']['centre_cm'] < 5
@@ -50,3 +50,21 @@ def test_the_oracle_scores_undo_a_shift_a_quarter_turn_and_a_scale():
     grown = truth.copy().apply_transform(trimesh.transformations.scale_matrix(bench.ORACLE_SCALES[-1], bottom))
     got = bench.oracle_f1(grown, truth)
     assert got['centred'] < 90 and got['scaled'] > 99.9
+
+
+def test_the_summary_counts_misses_as_zero_and_dense_seeds_each_run_the_set(tmp_path, capsys):
+    import json
+    bench = _bench()
+    rows = [{'class': 'chair', 'fused': {'f1': 10.0}, 'sparse': {'f1': 50.0}, 'dense': {'f1': 80.0}},
+            {'class': 'chair', 'fused': {'f1': 40.0}},
+            {'class': 'dining table', 'fused': {'f1': 5.0}, 'sparse': {'f1': 70.0}}]
+    got = bench.summary(rows, 4)
+    assert got['found'] == 3 and got['chair'] == 60.0 and got['dining table'] == 70.0
+    assert got['misses_as_0'] == (80 + 40 + 70) / 4
+    out = tmp_path / 'rows.json'
+    assert bench.main([str(REPO / 'bags' / 'demo_orbit.mcap'), '--dense-seeds', '0,1', '--json', str(out)]) == 0
+    text = capsys.readouterr().out
+    assert text.count('demo_orbit.mcap: 1/1 found') == 2
+    assert '[dense seed 0] found 1/1' in text and '[dense seed 1] found 1/1' in text
+    assert 'mean over dense seeds 0,1: found 1/1' in text
+    assert sorted(r['dense_seed'] for r in json.loads(out.read_text())) == [0, 1]
