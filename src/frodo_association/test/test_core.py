@@ -98,6 +98,10 @@ def test_merge_segment_groups_follows_the_dp_means_objective():
     both = np.concatenate([segs[:2], far[:2], segs[2:3]])
     out, centres = merge_segment_groups(both, np.array([3, 3, 5, 5, -1]), np.arange(5), penalty=0.4)
     assert list(out) == [0, 0, 1, 1, -1] and len(centres) == 2
+    # No segment in any group (every cluster of the class without a reliable detection; realwalk-tune2-8508 raised
+    # here once): nothing to merge, no centre.
+    out, centres = merge_segment_groups(both, np.full(5, -1), np.arange(5), penalty=0.4)
+    assert list(out) == [-1] * 5 and centres.shape == (0, 3)
 
 
 def test_dp_means_recovers_the_objects_from_noisy_detections():
