@@ -26,7 +26,10 @@ walk through the middle of a room looking outwards, `scene.InsideOutPath`), 4 or
 tables and 3 chairs, nearly every chair pushed under a table on the side away from the camera):
 - `realwalk` (HELD OUT, for reporting only): 12 rooms, seeds 9200-9211, 54 objects, held-out families only
   (`shapes.eval_families`);
-- `realwalk-tune` (for tuning): 12 rooms, seeds 8400-8411, training families only.
+- `realwalk-tune` (for tuning): 12 rooms, seeds 8400-8411, training families only;
+- `realwalk-tune2` (for tuning): 12 more rooms, seeds 8500-8511, training families only: single objects and
+  draws of the detector noise move realwalk-tune's pooled figures by several points, so a change is judged on
+  both (108 objects).
 
 Variants (`VARIANTS`) are the same rooms under different conditions: `full` (every condition of the set's
 preset, `EvalSet.preset`: `handheld` or `realwalk`, 35 keyframes), `full100` (the same, 100 views), `full640`
@@ -97,14 +100,17 @@ SETS: dict[str, EvalSet] = {
     'realcapture-tune2': EvalSet('realcapture-tune2', tuple(range(8200, 8212)), tuple(3 + i % 2 for i in range(12)),
                                  'train', 'tuning, second set (training families only)'),
     'realcapture-tune3': EvalSet('realcapture-tune3', tuple(range(8300, 8318)), tuple(3 + i % 2 for i in range(18)),
-                                 'extra', 'tuning, third set (training and extra families: designs the default '
-                                 'prior has not seen)'),
+                                 'extra', 'tuning, third set (training and extra families: designs the first '
+                                 'prior `furniture` has not seen)'),
     'realwalk': EvalSet('realwalk', tuple(range(9200, 9212)), tuple(4 + i % 2 for i in range(12)), 'heldout',
                         'held-out evaluation of inside-out walks (issue 27): report only, never tune',
                         preset='realwalk', classes=WALK_CLASSES),
     'realwalk-tune': EvalSet('realwalk-tune', tuple(range(8400, 8412)), tuple(4 + i % 2 for i in range(12)), 'train',
                              'tuning on inside-out walks (training families only)', preset='realwalk',
                              classes=WALK_CLASSES),
+    'realwalk-tune2': EvalSet('realwalk-tune2', tuple(range(8500, 8512)), tuple(4 + i % 2 for i in range(12)),
+                              'train', 'tuning on inside-out walks, second set (training families only)',
+                              preset='realwalk', classes=WALK_CLASSES),
 }
 
 _HANDHELD = preset_kwargs('handheld')

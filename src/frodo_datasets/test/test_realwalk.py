@@ -128,6 +128,8 @@ def test_realwalk_sets():
     held, tune = eval_sets.SETS['realwalk'], eval_sets.SETS['realwalk-tune']
     assert len(held.seeds) >= 12 and sum(held.objects) >= 40 and held.family_set == 'heldout'
     assert tune.family_set == 'train' and held.preset == tune.preset == 'realwalk'
+    tune2 = eval_sets.SETS['realwalk-tune2']
+    assert tune2.family_set == 'train' and tune2.preset == 'realwalk' and sum(tune.objects) + sum(tune2.objects) >= 100
     config = eval_sets.scene_config(held, held.seeds[0], held.objects[0], 'full')
     assert config.scene == 'insideout' and config.frames == 35 and config.classes == eval_sets.WALK_CLASSES
     assert eval_sets.scene_config(held, held.seeds[0], held.objects[0], 'full100').frames == 100
