@@ -124,6 +124,7 @@ def summary_line(s: dict) -> str:
 
 
 def with_dense_seed(config: PipelineConfig | None, seed: int) -> PipelineConfig:
+    """`config` (default: the defaults) with the dense stage's pixel draws seeded by `seed`."""
     config = config or PipelineConfig()
     return replace(config, optim=replace(config.optim, dense=replace(config.optim.dense, seed=seed)))
 
@@ -193,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
         print(prefix + summary_line(summaries[-1]), flush=True)
         rows += seed_rows
     if len(seeds) > 1:
-        keys = sorted(set().union(*summaries), key=lambda k: list(summaries[0]).index(k) if k in summaries[0] else 99)
+        keys = dict.fromkeys(k for s in summaries for k in s)          # first-seen order
         mean = {k: float(np.mean([s[k] for s in summaries if k in s])) for k in keys}
         print(f'mean over dense seeds {",".join(map(str, seeds))}: ' + summary_line(mean))
     if args.json:

@@ -21,6 +21,8 @@ v); world frame gravity aligned, z up; `T_world_camera` is the camera pose (opti
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
@@ -82,7 +84,7 @@ def point_segment_distance(points: np.ndarray, segments: np.ndarray) -> np.ndarr
 def _group_sum(values: np.ndarray, group: np.ndarray, n_groups: int, idx: np.ndarray | None = None) -> np.ndarray:
     """Sums of values (N, ...) per group (N,) in 0..n_groups-1 -> (n_groups, ...), one bincount. idx: the flat
     bin of every element of values (`_group_bins`), when the caller sums several arrays of that shape."""
-    flat = values.reshape(len(values), int(np.prod(values.shape[1:])))   # not -1: N may be 0
+    flat = values.reshape(len(values), math.prod(values.shape[1:]))   # not -1: N may be 0
     k = flat.shape[1]
     if idx is None:
         idx = _group_bins(group, k)

@@ -19,41 +19,18 @@ import json
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from frodo_common.bag import BagError, BagReader, BagWriter
 from frodo_common.conversions import (ConversionError, camera_info_to_K, image_to_numpy, make_camera_info,
                                       numpy_to_image, stamp_to_ns)
 from frodo_common.topics import CAMERA_INFO, IMAGE, INSTANCES
-
-DEPTH = '/camera/depth/image_raw'
-
-
-def scaled_intrinsics(K: np.ndarray, scale: float) -> np.ndarray:
-    """K of the same camera on a pixel grid `scale` times as fine (pixel (u, v) is the centre of column u)."""
-    out = np.asarray(K, dtype=np.float64).copy()
-    out[0, 0] *= scale
-    out[1, 1] *= scale
-    out[0, 1] *= scale
-    out[:2, 2] = (out[:2, 2] + 0.5) * scale - 0.5
-    return out
+from frodo_datasets.convert.common import resize_color, resize_nearest, scale_intrinsics
+from frodo_datasets.convert.writer import DEPTH_TOPIC
 
 
 def scaled_size(width: int, height: int, scale: float) -> tuple[int, int]:
     return max(1, int(round(width * scale))), max(1, int(round(height * scale)))
-
-
-def rescale_image(image: np.ndarray, size: tuple[int, int], labels: bool) -> np.ndarray:
-    """`image` resampled to size (width, height): nearest pixel for labels and depth, else area / linear."""
-    if labels:
-        h, w = image.shape[:2]
-        # the source pixel whose centre is nearest each target pixel's centre (ties to the lower one)
-        cols = np.clip(np.ceil((np.arange(size[0]) + 0.5) * w / size[0] - 1.0), 0, w - 1).astype(int)
-        rows = np.clip(np.ceil((np.arange(size[1]) + 0.5) * h / size[1] - 1.0), 0, h - 1).astype(int)
-        return image[rows[:, None], cols[None, :]]
-    shrink = size[0] < image.shape[1]
-    return cv2.resize(image, size, interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
 
 
 def rescale_bag(src: str | Path, dst: str | Path, scale: float) -> dict[str, int]:
@@ -67,18 +44,20 @@ def rescale_bag(src: str | Path, dst: str | Path, scale: float) -> dict[str, int
         for topic, (msgtype, _) in reader.topics().items():
             writer.add_topic(topic, msgtype)
         for m in reader.messages():
-            if m.topic in (IMAGE, INSTANCES, DEPTH):
+            if m.topic in (IMAGE, INSTANCES, DEPTH_TOPIC):
                 msg = m.decode()
                 image = image_to_numpy(msg)
                 size = scaled_size(image.shape[1], image.shape[0], scale)
-                out = numpy_to_image(rescale_image(image, size, labels=m.topic != IMAGE), msg.encoding,
+                resized = resize_color(image, size) if m.topic == IMAGE else resize_nearest(image, size)
+                out = numpy_to_image(resized, msg.encoding,
                                      stamp_to_ns(msg.header.stamp), msg.header.frame_id)
                 writer.write(m.topic, out, m.log_time_ns)
             elif m.topic == CAMERA_INFO:
                 msg = m.decode()
                 width, height = scaled_size(msg.width, msg.height, scale)
-                writer.write(m.topic, make_camera_info(scaled_intrinsics(camera_info_to_K(msg), scale), width, height,
-                                                       stamp_to_ns(msg.header.stamp), msg.header.frame_id),
+                K = scale_intrinsics(camera_info_to_K(msg), (msg.width, msg.height), (width, height))
+                writer.write(m.topic, make_camera_info(K, width, height, stamp_to_ns(msg.header.stamp),
+                                                       msg.header.frame_id),
                              m.log_time_ns)
             else:
                 writer.write_raw(m.topic, m.msgtype, m.data, m.log_time_ns)
@@ -87,10 +66,10 @@ def rescale_bag(src: str | Path, dst: str | Path, scale: float) -> dict[str, int
     if sidecar.is_file():
         doc = json.loads(sidecar.read_text())
         camera = doc.get('camera', {})
-        if 'K' in camera:
-            camera['K'] = scaled_intrinsics(np.array(camera['K']), scale).tolist()
-        if 'width' in camera and 'height' in camera:
-            camera['width'], camera['height'] = scaled_size(camera['width'], camera['height'], scale)
+        if {'K', 'width', 'height'} <= set(camera):
+            size = scaled_size(camera['width'], camera['height'], scale)
+            camera['K'] = scale_intrinsics(np.array(camera['K']), (camera['width'], camera['height']), size).tolist()
+            camera['width'], camera['height'] = size
         dst.with_suffix('.gt.json').write_text(json.dumps(doc, indent=1) + '\n')
     return written
 

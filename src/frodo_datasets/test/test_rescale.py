@@ -8,30 +8,20 @@ import numpy as np
 
 from frodo_common.bag import BagReader
 from frodo_common.conversions import camera_info_to_K, image_to_numpy
-from frodo_common.geometry import project_points
-from frodo_datasets.rescale import main, rescale_bag, rescale_image, scaled_intrinsics
+from frodo_datasets.convert.common import resize_nearest, scale_intrinsics
+from frodo_datasets.rescale import main, rescale_bag
 
 REPO = Path(__file__).resolve().parents[3]
 ORBIT = REPO / 'bags' / 'demo_orbit.mcap'
 
 
-def test_scaled_intrinsics_keep_a_point_on_the_same_spot_of_the_image():
-    K = np.array([[277.1, 0.0, 159.5], [0.0, 277.1, 119.5], [0.0, 0.0, 1.0]])
-    points = np.array([[0.3, -0.2, 2.0], [-1.0, 0.5, 3.5]])
-    for scale in (0.5, 2.0, 0.75):
-        # a pixel-edge coordinate (u + 0.5) scales with the image
-        uv_scaled, _ = project_points(scaled_intrinsics(K, scale), np.eye(4), points)
-        uv, _ = project_points(K, np.eye(4), points)
-        np.testing.assert_allclose(uv_scaled + 0.5, (uv + 0.5) * scale, atol=1e-9)
-
-
 def test_labels_take_the_nearest_pixel_and_are_never_blended():
     labels = np.zeros((4, 6), np.uint16)
     labels[:, 3:] = 62 * 256 + 1
-    half = rescale_image(labels, (3, 2), labels=True)
+    half = resize_nearest(labels, (3, 2))
     assert half.dtype == np.uint16 and set(np.unique(half)) <= {0, 62 * 256 + 1}
     np.testing.assert_array_equal(half, labels[::2, ::2])
-    np.testing.assert_array_equal(rescale_image(half, (6, 4), labels=True), np.repeat(np.repeat(half, 2, 0), 2, 1))
+    np.testing.assert_array_equal(resize_nearest(half, (6, 4)), np.repeat(np.repeat(half, 2, 0), 2, 1))
 
 
 def test_the_demo_orbit_at_half_size_keeps_every_message_and_its_ground_truth(tmp_path, capsys):
@@ -43,7 +33,7 @@ def test_the_demo_orbit_at_half_size_keeps_every_message_and_its_ground_truth(tm
     info = [m.decode() for m in dst.messages(['/camera/color/camera_info'])]
     first = next(src.messages(['/camera/color/camera_info'])).decode()
     assert (info[0].width, info[0].height) == (first.width // 2, first.height // 2)
-    np.testing.assert_allclose(camera_info_to_K(info[0]), scaled_intrinsics(camera_info_to_K(first), 0.5))
+    np.testing.assert_allclose(camera_info_to_K(info[0]), scale_intrinsics(camera_info_to_K(first), (first.width, first.height), (info[0].width, info[0].height)))
     full = image_to_numpy(next(src.messages(['/camera/instances'])).decode())
     half = image_to_numpy(next(dst.messages(['/camera/instances'])).decode())
     assert half.shape == (full.shape[0] // 2, full.shape[1] // 2)
@@ -53,7 +43,8 @@ def test_the_demo_orbit_at_half_size_keeps_every_message_and_its_ground_truth(tm
     sidecar = json.loads(out.with_suffix('.gt.json').read_text())['camera']
     original = json.loads(ORBIT.with_suffix('.gt.json').read_text())['camera']
     assert sidecar['width'] == original['width'] // 2
-    np.testing.assert_allclose(sidecar['K'], scaled_intrinsics(np.array(original['K']), 0.5))
+    np.testing.assert_allclose(sidecar['K'], scale_intrinsics(np.array(original['K']), (original['width'],
+                               original['height']), (sidecar['width'], sidecar['height'])))
 
 
 def test_a_bad_scale_or_a_missing_bag_is_refused_with_a_message(tmp_path, capsys):
