@@ -60,6 +60,7 @@ class AssociationConfig:
     consistent_merges: bool = True
     confirm_distance: float = 0.2
     explained_inside: float = 0.8
+    frustum_merges: bool = True
 
 
 CONFIG_DOC: dict[str, str] = {
@@ -175,6 +176,10 @@ CONFIG_DOC: dict[str, str] = {
     'explained_inside': 'A detection box lying at least this fraction inside the (clipped) projected 3D box of another '
                         'published object of its class is explained by it too (a partial view: the top of a chair '
                         'behind a table, whose biased centre ray opened a cluster of its own) (> 1: off).',
+    'frustum_merges': 'At full passes, two published objects of one class with no frame in common merge when one\'s '
+                      'box centre lies in the frustum of the other\'s detections (inside the detection box, between '
+                      'the depths of its segment) in at least min_track_views frames and half of the frames that see '
+                      'it: a table too long for the view, split as its visible part moves along it.',
 }
 assert set(CONFIG_DOC) == {f.name for f in fields(AssociationConfig)}
 

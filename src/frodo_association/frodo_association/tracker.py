@@ -28,7 +28,9 @@ publishing (until it has min_track_views reliable ones) and merges with a cluste
 `truncated_merge_distance` (rather than merge_distance). At every full pass, a cluster most of whose
 detections are explained by another published object's box is merged into it (`merge_explained`), so an
 object first seen truncated and later whole is not duplicated by the biased centres of its truncated views
-(this also merges the two halves of a long table seen from its ends, whose centres stay apart).
+(this also merges the two halves of a long table seen from its ends, whose centres stay apart), and two
+published objects never in one frame merge when one's box centre lies in the frustums of the other's
+detections (`_frustum_duplicates`: a table too long for the view, split as the view turns along it).
 Publishing ("confirmed") from geometry, not from frame counts: a cluster is published once its detections in
 `min_track_views` frames are mutually consistent (their segments pass within `confirm_distance` of its centre;
 detections cut by the border or by a nearer instance count), one of them reliable, and it was detected in at least
@@ -765,6 +767,12 @@ class Associator:
                 if c * 2 > n[oid] and n[oid] >= self.cfg.min_track_views and not {oid, by} & touched:
                     removed, dirty = self._merge_pair(oid, by, removed, dirty)
                     touched |= {oid, by}                           # the rest waits for the next full pass
+        if self.cfg.frustum_merges:
+            boxed = [t for t in self.confirmed_tracks() if t.box is not None and t.object_id not in touched]
+            for a, b in self._frustum_duplicates(boxed):
+                if not {a, b} & touched:
+                    removed, dirty = self._merge_pair(a, b, removed, dirty)
+                    touched |= {a, b}
         if self.cfg.box_overlap_merge <= 1.0:
             boxed = [t for t in self.confirmed_tracks() if t.box is not None and t.object_id not in touched]
             for i, a in enumerate(boxed):
@@ -774,6 +782,48 @@ class Associator:
                         removed, dirty = self._merge_pair(a.object_id, b.object_id, removed, dirty)
                         touched |= {a.object_id, b.object_id}
         return removed, dirty
+
+    def _frustum_duplicates(self, boxed: list[ObjectTrack]) -> list[tuple[int, int]]:
+        """Pairs (a, b) of published objects of one class that are one object seen in parts: no frame holds a
+        detection of both, and b's box centre lies in the frustum of a's detections (inside the detection box,
+        between the optical depths of its segment) in at least min_track_views frames and in at least half of a's
+        frames that see that centre. A table too long for the view is detected as its visible part, and as the
+        view turns the short segments of those detections move along it, beyond lambda: two clusters, each
+        published, with boxes that barely overlap. Another object behind or beside a's detections fails the
+        depth or the box test; one in view in a's frames has detections of its own there."""
+        if len(boxed) < 2:
+            return []
+        ids = np.array([t.object_id for t in boxed])
+        slot = np.full(self.next_id + 1, -1, np.int64)
+        slot[ids] = np.arange(len(ids))
+        rows = np.nonzero(np.isin(self.rows.assign, ids))[0]
+        owner, fi = slot[self.rows.assign[rows]], self.rows.frame[rows]
+        seen = np.zeros((len(ids), len(self.frames)), bool)
+        seen[owner, fi] = True
+        common = seen.astype(np.int64) @ seen.T.astype(np.int64)
+        R, t = self.frames.T_camera_world[fi, :3, :3], self.frames.T_camera_world[fi, :3, 3]
+        K = self.frames.K[fi]
+        centres = np.array([b.box.center for b in boxed])
+        pc = np.einsum('rij,oj->roi', R, centres) + t[:, None]                       # (R, O, 3)
+        z = pc[..., 2]
+        zs = np.maximum(z, 1e-6)
+        u = K[:, None, 0, 0] * pc[..., 0] / zs + K[:, None, 0, 2]
+        v = K[:, None, 1, 1] * pc[..., 1] / zs + K[:, None, 1, 2]
+        size = self.frames.size[fi]
+        in_view = (z > self.cfg.min_depth) & (u >= 0) & (v >= 0) & (u < size[:, None, 0]) & (v < size[:, None, 1])
+        box = self.rows.box[rows]
+        seg_depth = np.einsum('ri,rki->rk', R[:, 2], self.rows.segment[rows]) + t[:, 2:3]   # (R, 2)
+        inside = in_view & (u >= box[:, None, 0]) & (u <= box[:, None, 2]) & (v >= box[:, None, 1]) \
+            & (v <= box[:, None, 3]) & (z >= seg_depth.min(1)[:, None]) & (z <= seg_depth.max(1)[:, None])
+        held = np.zeros((len(ids), len(ids)), np.int64)
+        viewed = np.zeros_like(held)
+        np.add.at(held, owner, inside.astype(np.int64))
+        np.add.at(viewed, owner, in_view.astype(np.int64))
+        classes = np.array([b.coco_id for b in boxed])
+        ok = (common == 0) & (classes[:, None] == classes[None, :]) & (held >= self.cfg.min_track_views) \
+            & (2 * held >= viewed)
+        np.fill_diagonal(ok, False)
+        return [(int(ids[i]), int(ids[j])) for i, j in zip(*np.nonzero(ok))]
 
     def merge_consistent(self) -> tuple[dict[int, int], set[int]]:
         """DP-means merges of a split object (the project's own extension). Near-parallel rays of a narrow

@@ -1,5 +1,7 @@
 """Association core (paper Sec. 5.1, supplement Algorithm 1 and "Detection Pruning"): segments from boxes,
 DP-means over segments with stable ids, merges and same-frame exclusivity, box fitting and pruning."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -350,10 +352,12 @@ def test_an_object_first_seen_truncated_then_whole_gives_one_track():
     assert np.linalg.norm(assoc.tracks[0].center[:2] - table.center[:2]) < 0.1
     whole = assoc.rows.frame >= 20
     assert np.all(assoc.rows.assign[whole] == 0)
-    # With the box test and the footprint-overlap merge off (thresholds above 1 never hold) the two clusters stay
-    # apart: a duplicate while published. Either test alone merges them.
-    assoc = _run_views([table], views[:40], AssociationConfig(truncated_explained_iou=2.0, box_overlap_merge=2.0))
-    assert len(assoc.confirmed_tracks()) == 2
+    # With the box test, the footprint-overlap merge and the frustum merge off (thresholds above 1 never hold) the
+    # two clusters stay apart: a duplicate while published. Each test alone merges them.
+    off = AssociationConfig(truncated_explained_iou=2.0, box_overlap_merge=2.0, frustum_merges=False)
+    assert len(_run_views([table], views[:40], off).confirmed_tracks()) == 2
+    for alone in ({'truncated_explained_iou': 0.5}, {'box_overlap_merge': 0.3}, {'frustum_merges': True}):
+        assert len(_run_views([table], views[:40], replace(off, **alone)).confirmed_tracks()) == 1, alone
 
 
 def _clipped_views(gt: Box3D, views):

@@ -84,9 +84,13 @@ def test_a_partial_view_inside_another_objects_box_is_merged_into_it():
     from frodo_detection.core import FilterConfig
     scene = make_scene(5, 119, n_frames=60, **LAYOUTS['walk'], **CONDITIONS['mask noise 2px'])
     merged = run_scene(scene, AssociationConfig(), FilterConfig())
-    apart = run_scene(scene, AssociationConfig(explained_inside=2.0), FilterConfig())
+    apart = run_scene(scene, AssociationConfig(explained_inside=2.0, frustum_merges=False), FilterConfig())
     assert (merged.recovered, merged.duplicates, merged.false_tracks) == (5, 0, 0)
     assert apart.duplicates == 1
+    # Its detections never share a frame with the chair's and hold the chair's centre: the frustum merge alone
+    # joins them too.
+    frustum = run_scene(scene, AssociationConfig(explained_inside=2.0), FilterConfig())
+    assert (frustum.recovered, frustum.duplicates, frustum.false_tracks) == (5, 0, 0)
 
 
 def test_a_published_object_whose_box_no_detection_overlaps_keeps_its_largest_views():
@@ -150,3 +154,48 @@ def test_the_merges_run_again_after_the_final_box_fits():
     assert sorted(len(a.members(t.object_id)) for t in published)[-2:] == [60, 60]
     unpublished = [oid for oid in a.tracks if not a.tracks[oid].confirmed]
     assert all(len(a.members(oid)) < AssociationConfig().min_track_views for oid in unpublished)
+
+
+def _entry_depth(box, T, obj):
+    """Optical depth where the ray through the centre of a detection box enters an upright box with yaw 0 (the
+    visible surface a depth image or the map's landmarks give)."""
+    d = T[:3, :3] @ np.array([((box[0] + box[2]) / 2 - K[0, 2]) / K[0, 0], ((box[1] + box[3]) / 2 - K[1, 2]) / K[1, 1],
+                              1.0])
+    with np.errstate(divide='ignore'):
+        t1, t2 = (obj.center - obj.size / 2 - T[:3, 3]) / d, (obj.center + obj.size / 2 - T[:3, 3]) / d
+    near, far = np.minimum(t1, t2).max(), np.maximum(t1, t2).min()
+    return near if near <= far else np.nan
+
+
+def test_a_long_table_split_into_two_published_halves_merges_when_one_lies_in_the_others_views():
+    # Inside-out walk (fresh room 8600): a 2.6 m table 1.1-1.4 m away, too long for the view; the camera turns from
+    # its right end to its left end. Its two halves published apart, with boxes whose footprints barely overlap.
+    table = BoxObject(67, np.array([-0.45, -1.5, 0.36]), np.array([2.6, 0.9, 0.72]), 0.0)
+    a = Associator(AssociationConfig())
+    for k, s in enumerate(np.linspace(0, 1, 22)):
+        eye = np.array([-0.6 * np.cos(np.pi * (0.15 + 0.7 * s)), -0.6 * np.sin(np.pi * (0.15 + 0.7 * s)), 1.45])
+        T = look_at(eye, eye + np.array([0.8 - 1.6 * s, -1.0, -0.7]))
+        labels, boxes = detections_from_instances(render_instances([table], K, T, SIZE)[0])
+        a.add_frame(k, K, T, SIZE, labels, boxes, np.array([_entry_depth(b, T, table) for b in boxes]))
+    rows = a.members(0)
+    late = rows[a.rows.frame[rows] >= 11]
+    half = a._new_track(int(late[0]))
+    a.rows.assign[late] = half
+    a._update_centers([0, half])
+    a.tracks[half].confirmed = True
+    for oid in (0, half):
+        a.fit_object_box(oid)
+    # The first half's box centre lies in the frustum of the second half's detections (inside the box, within
+    # the depths of its segment) in most frames that see it, and no frame holds both: one table.
+    a.cfg = replace(a.cfg, box_overlap_merge=2.0, truncated_explained_iou=2.0)      # the frustum test alone
+    assert a._frustum_duplicates(a.confirmed_tracks()) == [(half, 0)]
+    a.cfg = replace(a.cfg, frustum_merges=False)
+    assert a.merge_explained() == ({}, set())
+    # The first half's box 2 m farther along the second half's views, beyond their depths, is another object.
+    near_box = a.tracks[0].box
+    a.tracks[0].box = replace(near_box, center=near_box.center + [0.0, -2.0, 0.0])
+    assert a._frustum_duplicates(a.confirmed_tracks()) == []
+    a.tracks[0].box = near_box
+    a.cfg = replace(a.cfg, frustum_merges=True)
+    removed, dirty = a.merge_explained()
+    assert removed == {half: 0} and list(a.tracks) == [0] and dirty == set(range(22))
