@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from frodo_association.boxes import box_iou, canonical_yaw, clip_boxes
+from frodo_association.boxes import box_iou, box_inside_fraction, canonical_yaw, clip_boxes
 from frodo_association.config import AssociationConfig, EvidenceConfig
 from frodo_association.evidence import contact_edges, surface_depths
 from frodo_common.frames import depth_to_metres
@@ -292,14 +292,17 @@ def upright_box(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     return np.array([cx, cy, (z0 + z1) / 2]), np.array([w, h, z1 - z0]), float(np.radians(angle))
 
 
-def scene_from_bag(path: str, min_iou: float = 0.3) -> tuple[SynthScene, list[str]]:
+def scene_from_bag(path: str, min_iou: float = 0.3, min_inside: float = 0.9) -> tuple[SynthScene, list[str]]:
     """A contract bag with /camera/instances and /ground_truth/objects as a scene to score.
 
     Ground-truth objects: upright boxes around the ground-truth meshes (class from the marker ns). Each
     instance is labelled with the ground-truth object of its class whose projected mesh (bounding box of
     the projected vertices, clipped to the image) has the highest IoU with the instance box, at least
-    `min_iou` (an approximation for occluded instances). Each frame carries the latest /slam/points map
-    stamped no later than it (as the association node sees it). Returns (scene, notes).
+    `min_iou`; an instance box with no such match that lies at least `min_inside` inside the projected box
+    of objects of its class is the partial view of the one of them it overlaps most (a chair pushed under a
+    table shows its backrest only). Without occlusion in the ground truth this is an approximation. Each
+    frame carries the latest /slam/points map stamped no later than it (as the association node sees it).
+    Returns (scene, notes).
     """
     from frodo_common import conversions as conv
     from frodo_common import topics
@@ -353,6 +356,9 @@ def scene_from_bag(path: str, min_iou: float = 0.3) -> tuple[SynthScene, list[st
         iou = box_iou(boxes[:, None, :], gt_boxes[None, :, :])
         iou[:, ~seen] = 0.0
         iou[(labels[:, None] >> 8) != classes[None, :]] = 0.0
+        # Partial views (no match at min_iou): the objects of the class holding the box, ranked by IoU above all.
+        partial = (box_inside_fraction(boxes[:, None, :], gt_boxes[None, :, :]) >= min_inside) & (iou > 0)
+        iou = np.where((iou.max(axis=1, initial=0.0) < min_iou)[:, None] & partial, iou + 1.0, iou)
         gt = {int(lab): int(row.argmax()) for lab, row in zip(labels, iou) if row.size and row.max() >= min_iou}
         latest = np.searchsorted(map_stamps, stamp, side='right') - 1
         frames.append(SynthFrame(stamp, K, poses[stamp], poses[stamp], size, instances[stamp], gt, {},

@@ -36,6 +36,19 @@ def test_upright_box_recovers_a_yawed_box_from_its_corners():
 def test_scene_from_bag_recovers_objects_and_labels(tmp_path):
     scene = make_scene(3, seed=2, n_frames=12)
     path = tmp_path / 'walk.mcap'
+    _write_scene_bag(scene, path)
+    read, notes = scene_from_bag(str(path))
+    assert len(read.frames) == 12 and len(read.objects) == 3
+    for got, want in zip(read.objects, scene.objects):
+        assert got.coco_id == want.coco_id
+        assert np.allclose(got.center, want.center, atol=1e-3)
+        assert np.allclose(np.sort(got.size[:2]), np.sort(want.size[:2]), atol=1e-3)
+    labelled = [(read_f.gt.get(lab), gt) for read_f, f in zip(read.frames, scene.frames) for lab, gt in f.gt.items()
+                if f.visibility[lab] > 0.5]
+    assert np.mean([a == b for a, b in labelled]) > 0.95
+
+
+def _write_scene_bag(scene, path):
     names = {62: 'chair', 67: 'dining table'}
     with BagWriter(path) as bag:
         f0 = scene.frames[0]
@@ -46,15 +59,20 @@ def test_scene_from_bag_recovers_objects_and_labels(tmp_path):
             bag.write(topics.CAMERA_INFO, conv.make_camera_info(f.K, *f.size, f.stamp, 'cam'), f.stamp)
             bag.write(topics.POSE, conv.make_pose_stamped(f.T_world_camera, f.stamp, 'world'), f.stamp)
             bag.write(topics.INSTANCES, conv.numpy_to_image(f.instances, '16UC1', f.stamp, 'cam'), f.stamp)
-    read, notes = scene_from_bag(str(path))
-    assert len(read.frames) == 12 and len(read.objects) == 3
-    for got, want in zip(read.objects, scene.objects):
-        assert got.coco_id == want.coco_id
-        assert np.allclose(got.center, want.center, atol=1e-3)
-        assert np.allclose(np.sort(got.size[:2]), np.sort(want.size[:2]), atol=1e-3)
-    labelled = [(read_f.gt.get(lab), gt) for read_f, f in zip(read.frames, scene.frames) for lab, gt in f.gt.items()
-                if f.visibility[lab] > 0.5]
-    assert np.mean([a == b for a, b in labelled]) > 0.95
+
+
+def test_partial_views_are_labelled_with_the_object_whose_box_holds_them(tmp_path):
+    # Instances less than half visible (behind another object): their boxes overlap the object's projected box by
+    # less than min_iou, yet lie inside it.
+    scene = make_scene(5, seed=5, n_frames=20)
+    _write_scene_bag(scene, tmp_path / 'walk.mcap')
+    scores = {}
+    for min_inside in (0.9, 2.0):                                        # > 1: by IoU alone
+        read, _ = scene_from_bag(str(tmp_path / 'walk.mcap'), min_inside=min_inside)
+        occluded = [(read_f.gt.get(lab), gt) for read_f, f in zip(read.frames, scene.frames)
+                    for lab, gt in f.gt.items() if f.visibility[lab] <= 0.5]
+        scores[min_inside] = (sum(a == b for a, b in occluded), sum(a is not None and a != b for a, b in occluded))
+    assert scores[0.9][0] > scores[2.0][0] + 4 and scores[0.9][1] == scores[2.0][1]
 
 
 def test_add_noise_perturbs_a_recorded_scene_like_make_scene():
