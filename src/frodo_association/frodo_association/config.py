@@ -177,9 +177,10 @@ CONFIG_DOC: dict[str, str] = {
                         'published object of its class is explained by it too (a partial view: the top of a chair '
                         'behind a table, whose biased centre ray opened a cluster of its own) (> 1: off).',
     'frustum_merges': 'At full passes, two published objects of one class with no frame in common merge when one\'s '
-                      'box centre lies in the frustum of the other\'s detections (inside the detection box, between '
-                      'the depths of its segment) in at least min_track_views frames and half of the frames that see '
-                      'it: a table too long for the view, split as its visible part moves along it.',
+                      'detections hold the other in at least min_track_views frames and half of those that see its '
+                      'centre: its box centre between the depths of the detection\'s segment and, in the image, '
+                      'inside the detection box (or its projected box explained_inside of it). A table too long for '
+                      'the view, split as its visible part moves along it.',
 }
 assert set(CONFIG_DOC) == {f.name for f in fields(AssociationConfig)}
 

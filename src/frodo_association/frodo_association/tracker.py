@@ -29,8 +29,8 @@ publishing (until it has min_track_views reliable ones) and merges with a cluste
 detections are explained by another published object's box is merged into it (`merge_explained`), so an
 object first seen truncated and later whole is not duplicated by the biased centres of its truncated views
 (this also merges the two halves of a long table seen from its ends, whose centres stay apart), and two
-published objects never in one frame merge when one's box centre lies in the frustums of the other's
-detections (`_frustum_duplicates`: a table too long for the view, split as the view turns along it).
+published objects never in one frame merge when one lies in the frustums of the other's detections
+(`_frustum_duplicates`: a table too long for the view, split as the view turns along it).
 Publishing ("confirmed") from geometry, not from frame counts: a cluster is published once its detections in
 `min_track_views` frames are mutually consistent (their segments pass within `confirm_distance` of its centre;
 detections cut by the border or by a nearer instance count), one of them reliable, and it was detected in at least
@@ -785,12 +785,14 @@ class Associator:
 
     def _frustum_duplicates(self, boxed: list[ObjectTrack]) -> list[tuple[int, int]]:
         """Pairs (a, b) of published objects of one class that are one object seen in parts: no frame holds a
-        detection of both, and b's box centre lies in the frustum of a's detections (inside the detection box,
-        between the optical depths of its segment) in at least min_track_views frames and in at least half of a's
-        frames that see that centre. A table too long for the view is detected as its visible part, and as the
-        view turns the short segments of those detections move along it, beyond lambda: two clusters, each
-        published, with boxes that barely overlap. Another object behind or beside a's detections fails the
-        depth or the box test; one in view in a's frames has detections of its own there."""
+        detection of both, and a's detections hold b in at least min_track_views frames and in at least half of
+        a's frames that see b's box centre. A detection holds b when b's centre lies between the optical depths
+        of the detection's segment and, in the image, b's centre lies inside the detection box or b's projected
+        box (clipped to the image) lies explained_inside of it. A table too long for the view is detected as its
+        visible part, and as the view turns the short segments of those detections move along it, beyond
+        lambda: two clusters, each published, with boxes that barely overlap. Another object behind or beside
+        a's detections fails the depth or the image test; one in view in a's frames has detections of its own
+        there."""
         if len(boxed) < 2:
             return []
         ids = np.array([t.object_id for t in boxed])
@@ -812,9 +814,14 @@ class Associator:
         size = self.frames.size[fi]
         in_view = (z > self.cfg.min_depth) & (u >= 0) & (v >= 0) & (u < size[:, None, 0]) & (v < size[:, None, 1])
         box = self.rows.box[rows]
+        centre_inside = in_view & (u >= box[:, None, 0]) & (u <= box[:, None, 2]) & (v >= box[:, None, 1]) \
+            & (v <= box[:, None, 3])
+        proj, valid = project_boxes(K, self.frames.T_camera_world[fi], self._box_corners(boxed))
+        proj = clip_boxes(proj, size)                                                   # (R, O, 4)
+        box_inside = valid & (box_area(proj) > 0) \
+            & (box_inside_fraction(proj, box[:, None, :]) >= self.cfg.explained_inside)
         seg_depth = np.einsum('ri,rki->rk', R[:, 2], self.rows.segment[rows]) + t[:, 2:3]   # (R, 2)
-        inside = in_view & (u >= box[:, None, 0]) & (u <= box[:, None, 2]) & (v >= box[:, None, 1]) \
-            & (v <= box[:, None, 3]) & (z >= seg_depth.min(1)[:, None]) & (z <= seg_depth.max(1)[:, None])
+        inside = (centre_inside | box_inside) & (z >= seg_depth.min(1)[:, None]) & (z <= seg_depth.max(1)[:, None])
         held = np.zeros((len(ids), len(ids)), np.int64)
         viewed = np.zeros_like(held)
         np.add.at(held, owner, inside.astype(np.int64))

@@ -199,3 +199,28 @@ def test_a_long_table_split_into_two_published_halves_merges_when_one_lies_in_th
     a.cfg = replace(a.cfg, frustum_merges=True)
     removed, dirty = a.merge_explained()
     assert removed == {half: 0} and list(a.tracks) == [0] and dirty == set(range(22))
+
+
+def test_a_frustum_holds_the_part_of_a_box_in_view_when_its_centre_is_not():
+    # A 3 m table seen from 2 m at its left end, then at its right end (cut by the image border each time), split
+    # into two published halves: from the right end the left half's box centre is out of view, but the part of
+    # its box in view lies inside the detections there.
+    from frodo_common.geometry import Box3D
+    table = BoxObject(67, np.array([0.0, 2.0, 0.36]), np.array([3.0, 0.9, 0.72]), 0.0)
+    views = [look_at(np.array([x, 0.0, 1.4]), np.array([x, 2.0, 0.3]))
+             for x in [*np.linspace(-1.3, -1.0, 6), *np.linspace(1.0, 1.3, 6)]]
+    a = Associator(AssociationConfig())
+    for k, T in enumerate(views):
+        a.add_frame(k, K, T, SIZE, *detections_from_instances(render_instances([table], K, T, SIZE)[0]))
+    a.settle()
+    rows = a.members(0)
+    late = rows[a.rows.frame[rows] >= 6]
+    right = a._new_track(int(late[0]))
+    a.rows.assign[late] = right
+    a._update_centers([0, right])
+    a.tracks[right].confirmed = True
+    a.fit_object_box(0)
+    a.tracks[right].box = Box3D(table.center, table.size, 0.0)
+    assert (right, 0) in a._frustum_duplicates(a.confirmed_tracks())
+    a.cfg = replace(a.cfg, explained_inside=2.0)                # the projected-box test off: the centre alone
+    assert (right, 0) not in a._frustum_duplicates(a.confirmed_tracks())
