@@ -28,7 +28,8 @@ def test_sets_are_disjoint_and_big_enough():
     unseen = [f for c, f in held_families if f in eval_families(c)]
     assert len(unseen) >= 8 and {c for c, f in held_families if f in eval_families(c)} == {'chair', 'dining table'}
     assert not any(f in eval_families(c) for c, f in _families(tune) + _families(tune2) + _families(tune3)
-                   + _families(SETS['realwalk-tune']) + _families(SETS['realwalk-tune2']))
+                   + _families(SETS['realwalk-tune']) + _families(SETS['realwalk-tune2'])
+                   + _families(SETS['realwalk-tune3']))
     assert all(f in eval_families(c) for c, f in _families(SETS['realwalk']))   # designs no prior trained on
     # the third tuning set: designs the first prior `furniture` has not seen, of both classes, next to training
     # designs

@@ -130,6 +130,9 @@ def test_realwalk_sets():
     assert tune.family_set == 'train' and held.preset == tune.preset == 'realwalk'
     tune2 = eval_sets.SETS['realwalk-tune2']
     assert tune2.family_set == 'train' and tune2.preset == 'realwalk' and sum(tune.objects) + sum(tune2.objects) >= 100
+    tune3 = eval_sets.SETS['realwalk-tune3']
+    assert tune3.family_set == 'train' and tune3.preset == 'realwalk' and len(tune3.seeds) == 40
+    assert not set(tune3.seeds) & (set(held.seeds) | set(tune.seeds) | set(tune2.seeds))
     config = eval_sets.scene_config(held, held.seeds[0], held.objects[0], 'full')
     assert config.scene == 'insideout' and config.frames == 35 and config.classes == eval_sets.WALK_CLASSES
     assert eval_sets.scene_config(held, held.seeds[0], held.objects[0], 'full100').frames == 100
