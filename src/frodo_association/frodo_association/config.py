@@ -58,7 +58,7 @@ class AssociationConfig:
     height_prior_weight: float = 0.2
     box_overlap_merge: float = 0.3
     consistent_merges: bool = True
-    confirm_distance: float = 0.2
+    confirm_distance: float = 0.3
     explained_inside: float = 0.8
     frustum_merges: bool = True
 
