@@ -167,6 +167,18 @@ def _entry_depth(box, T, obj):
     return near if near <= far else np.nan
 
 
+def _publish_split(a, object_id, from_frame):
+    """Move a cluster's detections of frames >= from_frame into a new published cluster (a split object, both
+    halves published); returns the new id."""
+    rows = a.members(object_id)
+    late = rows[a.rows.frame[rows] >= from_frame]
+    half = a._new_track(int(late[0]))
+    a.rows.assign[late] = half
+    a._update_centers([object_id, half])
+    a.tracks[half].confirmed = True
+    return half
+
+
 def test_a_long_table_split_into_two_published_halves_merges_when_one_lies_in_the_others_views():
     # Inside-out walk (fresh room 8600): a 2.6 m table 1.1-1.4 m away, too long for the view; the camera turns from
     # its right end to its left end. Its two halves published apart, with boxes whose footprints barely overlap.
@@ -177,12 +189,7 @@ def test_a_long_table_split_into_two_published_halves_merges_when_one_lies_in_th
         T = look_at(eye, eye + np.array([0.8 - 1.6 * s, -1.0, -0.7]))
         labels, boxes = detections_from_instances(render_instances([table], K, T, SIZE)[0])
         a.add_frame(k, K, T, SIZE, labels, boxes, np.array([_entry_depth(b, T, table) for b in boxes]))
-    rows = a.members(0)
-    late = rows[a.rows.frame[rows] >= 11]
-    half = a._new_track(int(late[0]))
-    a.rows.assign[late] = half
-    a._update_centers([0, half])
-    a.tracks[half].confirmed = True
+    half = _publish_split(a, 0, 11)
     for oid in (0, half):
         a.fit_object_box(oid)
     # The first half's box centre lies in the frustum of the second half's detections (inside the box, within
@@ -213,12 +220,7 @@ def test_a_frustum_holds_the_part_of_a_box_in_view_when_its_centre_is_not():
     for k, T in enumerate(views):
         a.add_frame(k, K, T, SIZE, *detections_from_instances(render_instances([table], K, T, SIZE)[0]))
     a.settle()
-    rows = a.members(0)
-    late = rows[a.rows.frame[rows] >= 6]
-    right = a._new_track(int(late[0]))
-    a.rows.assign[late] = right
-    a._update_centers([0, right])
-    a.tracks[right].confirmed = True
+    right = _publish_split(a, 0, 6)
     a.fit_object_box(0)
     a.tracks[right].box = Box3D(table.center, table.size, 0.0)
     assert (right, 0) in a._frustum_duplicates(a.confirmed_tracks())
