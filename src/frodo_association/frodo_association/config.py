@@ -30,7 +30,7 @@ class AssociationConfig:
     confirm_window: int = 10
     drop_hit_ratio: float = 0.4
     truncated_opens_clusters: bool = False
-    truncated_min_views: int = 4
+    truncated_min_views: int = 3
     truncated_merge_distance: float = 0.4
     truncated_explained_iou: float = 0.5
     objects_on_floor: bool = True
