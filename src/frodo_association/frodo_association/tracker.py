@@ -784,8 +784,8 @@ class Associator:
         return removed, dirty
 
     def _frustum_duplicates(self, boxed: list[ObjectTrack]) -> list[tuple[int, int]]:
-        """Pairs (a, b) of published objects of one class that are one object seen in parts: no frame holds a
-        detection of both, and a's detections hold b in at least min_track_views frames and in at least half of
+        """Pairs (a, b) of published objects of one class that are one object seen in parts: their box centres
+        lie within the class's largest extent, no frame holds a detection of both, and a's detections hold b in at least min_track_views frames and in at least half of
         a's frames that see b's box centre. A detection holds b when b's centre lies between the optical depths
         of the detection's segment and, in the image, b's centre lies inside the detection box or b's projected
         box (clipped to the image) lies explained_inside of it. A table too long for the view is detected as its
@@ -795,17 +795,28 @@ class Associator:
         there."""
         if len(boxed) < 2:
             return []
+        # Two parts of one object have box centres closer than the class's largest extent (cheap, first).
+        centres = np.array([b.box.center for b in boxed])
+        classes = np.array([b.coco_id for b in boxed])
+        reach = np.array([category_by_id(c).size_range[1] for c in classes])
+        candidate = (classes[:, None] == classes[None, :]) \
+            & (np.linalg.norm(centres[:, None] - centres[None], axis=2) <= reach[:, None])
+        np.fill_diagonal(candidate, False)
+        if not candidate.any():
+            return []
         ids = np.array([t.object_id for t in boxed])
         slot = np.full(self.next_id + 1, -1, np.int64)
         slot[ids] = np.arange(len(ids))
-        rows = np.nonzero(np.isin(self.rows.assign, ids))[0]
-        owner, fi = slot[self.rows.assign[rows]], self.rows.frame[rows]
+        members = np.nonzero(np.isin(self.rows.assign, ids))[0]
         seen = np.zeros((len(ids), len(self.frames)), bool)
-        seen[owner, fi] = True
-        common = seen.astype(np.int64) @ seen.T.astype(np.int64)
+        seen[slot[self.rows.assign[members]], self.rows.frame[members]] = True
+        candidate &= (seen.astype(np.int64) @ seen.T.astype(np.int64)) == 0            # never in one frame
+        if not candidate.any():
+            return []
+        rows = members[candidate.any(axis=1)[slot[self.rows.assign[members]]]]    # detections of candidates only
+        owner, fi = slot[self.rows.assign[rows]], self.rows.frame[rows]
         R, t = self.frames.T_camera_world[fi, :3, :3], self.frames.T_camera_world[fi, :3, 3]
         K = self.frames.K[fi]
-        centres = np.array([b.box.center for b in boxed])
         pc = np.einsum('rij,oj->roi', R, centres) + t[:, None]                       # (R, O, 3)
         z = pc[..., 2]
         zs = np.maximum(z, 1e-6)
@@ -826,10 +837,7 @@ class Associator:
         viewed = np.zeros_like(held)
         np.add.at(held, owner, inside.astype(np.int64))
         np.add.at(viewed, owner, in_view.astype(np.int64))
-        classes = np.array([b.coco_id for b in boxed])
-        ok = (common == 0) & (classes[:, None] == classes[None, :]) & (held >= self.cfg.min_track_views) \
-            & (2 * held >= viewed)
-        np.fill_diagonal(ok, False)
+        ok = candidate & (held >= self.cfg.min_track_views) & (2 * held >= viewed)
         return [(int(ids[i]), int(ids[j])) for i, j in zip(*np.nonzero(ok))]
 
     def merge_consistent(self) -> tuple[dict[int, int], set[int]]:
