@@ -176,7 +176,8 @@ CONFIG_DOC: dict[str, str] = {
     'explained_inside': 'A detection box lying at least this fraction inside the (clipped) projected 3D box of another '
                         'published object of its class is explained by it too (a partial view: the top of a chair '
                         'behind a table, whose biased centre ray opened a cluster of its own) (> 1: off).',
-    'frustum_merges': 'At full passes, two published objects of one class with no frame in common merge when one\'s '
+    'frustum_merges': 'At full passes, two published objects of one class with no frame in common and box centres '
+                      'within the class\'s largest extent merge when one\'s '
                       'detections hold the other in at least min_track_views frames and half of those that see its '
                       'centre: its box centre between the depths of the detection\'s segment and, in the image, '
                       'inside the detection box (or its projected box explained_inside of it). A table too long for '
