@@ -68,6 +68,15 @@ def oracle_f1(mesh, truth) -> dict[str, float]:
             'scaled': max(f1((centred - base) * k + base) for k in ORACLE_SCALES)}
 
 
+def gt_families(bag: str) -> dict[int, str]:
+    """Ground-truth object id -> shape family, from the bag's `<stem>.gt.json` sidecar (`frodo synth`), if any."""
+    sidecar = Path(bag).with_suffix('.gt.json')
+    if not sidecar.is_file():
+        return {}
+    objects = json.loads(sidecar.read_text()).get('scene', {}).get('objects', [])
+    return {int(o['id']): o.get('family') for o in objects if 'id' in o}
+
+
 def score_bag(bag: str, config: PipelineConfig | None, oracle: bool = False) -> tuple[list[dict], str, int]:
     """(one row per matched object, the bag's summary line, its number of ground-truth objects)."""
     gt = load_ground_truth(bag)
@@ -83,12 +92,14 @@ def score_bag(bag: str, config: PipelineConfig | None, oracle: bool = False) -> 
     final = [EvalObject(oid, e.class_name, e.mesh_world) for oid, e in result.estimates.items()]
     report = evaluate(final, gt)
     truth = {g.id: g for g in gt}
+    families = gt_families(bag)
     rows = []
     for pair in report.pairs:
         g = truth[pair.gt_id]
         centre = g.mesh.bounds.mean(0)
         box = result.tracks[pair.pred_id][1]
-        row = {'bag': Path(bag).stem, 'object': pair.pred_id, 'class': pair.class_name,
+        row = {'bag': Path(bag).stem, 'object': pair.pred_id, 'gt': pair.gt_id, 'family': families.get(pair.gt_id),
+               'class': pair.class_name,
                'assoc_cm': 100 * float(np.linalg.norm(box.center[:2] - centre[:2])),
                'assoc_dz_cm': 100 * float(box.center[2] - centre[2])}
         for stage, mesh in meshes.get(pair.pred_id, {}).items():
@@ -161,7 +172,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('bags', nargs='+')
     parser.add_argument('--params', action='append', default=[], help='parameter YAML (repeatable)')
-    parser.add_argument('--json', help='write the per-object rows here')
+    parser.add_argument('--json', help='write the per-object rows here (keyed by bag and ground-truth id `gt`, '
+                        'with the ground truth\'s shape `family` where the bag has a `.gt.json` sidecar)')
     parser.add_argument('--oracle', action='store_true',
                         help='also score each final mesh after ground-truth corrections (centred, turned, scaled)')
     parser.add_argument('--dense-seeds', default='',
