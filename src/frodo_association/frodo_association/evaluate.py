@@ -208,6 +208,18 @@ def placement_evidence(assoc: Associator, rows: np.ndarray, obj: BoxObject) -> t
     return spread, float(np.median((v.max(1) - assoc.rows.box[rows[uncut], 3]) / height))
 
 
+def along_view_error(assoc: Associator, rows: np.ndarray, obj: BoxObject, center: np.ndarray) -> float:
+    """Signed horizontal offset (m) of an estimated centre from the object's true one along the mean direction
+    from its detections' cameras to it: positive when the estimate lies farther away than the truth."""
+    T = assoc.frames.T_camera_world[assoc.rows.frame[rows]]
+    cams = np.einsum('fij,fj->fi', -np.transpose(T[:, :3, :3], (0, 2, 1)), T[:, :3, 3])
+    look = obj.center[:2] - cams[:, :2]
+    look /= np.maximum(np.linalg.norm(look, axis=1, keepdims=True), 1e-9)
+    view = look.mean(0)
+    view /= max(float(np.linalg.norm(view)), 1e-9)
+    return float((center[:2] - obj.center[:2]) @ view)
+
+
 def trace_objects(assoc: Associator, scene: SynthScene, gt: np.ndarray, tracks: list, match: dict[int, int],
                   far: float = 0.5) -> list[str]:
     """One line per ground-truth object: its detections (reliable / truncated / other; how many with a surface
@@ -236,6 +248,8 @@ def trace_objects(assoc: Associator, scene: SynthScene, gt: np.ndarray, tracks: 
             err = np.linalg.norm(t.box.center - obj.center) if t.box is not None else float('nan')
             kept = int(np.count_nonzero(assoc.rows.kept[assoc.members(t.object_id)]))
             fate = f'published as {t.object_id} with {kept} kept detections, box centre {err:.2f} m off'
+            if t.box is not None and len(rows):
+                fate += f' ({along_view_error(assoc, rows, obj, t.box.center):+.2f} m along the view)'
             if err > far:
                 spread, gap = placement_evidence(assoc, rows, obj)
                 fate += (f' (placement: seen over {spread:.0f} deg, ' + ('no uncut bottom edge)' if gap is None else

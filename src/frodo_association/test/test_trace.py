@@ -79,3 +79,27 @@ def test_trace_says_what_fixed_a_misplaced_objects_depth(monkeypatch):
         assert all(s > 5 for s in spreads)     # a walk past the objects
     assert all(abs(g) < 0.1 for g in gaps[0.0])          # masks reach the floor contact
     assert all(0.35 < g < 0.65 for g in gaps[0.5])       # half the height hidden at the bottom
+
+
+def test_along_view_error_is_the_signed_offset_away_from_the_cameras(monkeypatch):
+    from frodo_association import evaluate
+    seen = {}
+
+    def keep(assoc, scene, gt, tracks, match, **kwargs):
+        seen.update(assoc=assoc, gt=gt)
+        return []
+    monkeypatch.setattr(evaluate, 'trace_objects', keep)
+    scene = make_scene(1, seed=5, n_frames=20)
+    run_scene(scene, AssociationConfig(), FilterConfig(), trace=True)
+    assoc, rows = seen['assoc'], np.nonzero(seen['gt'] == 0)[0]
+    obj = scene.objects[0]
+    T = assoc.frames.T_camera_world[assoc.rows.frame[rows]]
+    cams = np.einsum('fij,fj->fi', -np.transpose(T[:, :3, :3], (0, 2, 1)), T[:, :3, 3])
+    look = obj.center[:2] - cams[:, :2]
+    view = (look / np.linalg.norm(look, axis=1, keepdims=True)).mean(0)     # mean unit direction to the object
+    view /= np.linalg.norm(view)
+    away = obj.center + 0.3 * np.array([view[0], view[1], 0.0])
+    across = obj.center + 0.3 * np.array([-view[1], view[0], 0.0])
+    assert abs(evaluate.along_view_error(assoc, rows, obj, away) - 0.3) < 0.02
+    assert abs(evaluate.along_view_error(assoc, rows, obj, 2 * obj.center - away) + 0.3) < 0.02
+    assert abs(evaluate.along_view_error(assoc, rows, obj, across)) < 0.02
