@@ -2,7 +2,7 @@
 (fused, sparse, dense) scored against the bag's ground truth, per object.
 
     .venv/bin/python bench/bench_stages.py BAG.mcap [BAG.mcap ...] [--params FILE] [--json OUT]
-        [--oracle] [--dense-seeds 0,1,2] [--threads N]
+        [--oracle] [--figures DIR] [--dense-seeds 0,1,2] [--threads N]
 
 Each bag is reconstructed as `frodo reconstruct` does (`frodo_bringup.pipeline.reconstruct`, deterministic),
 with the estimate of every stage kept as it ends. The final map is matched to the ground truth with the
@@ -19,6 +19,11 @@ can give, to show what each kind of error costs: moved horizontally so that its 
 truth's ("centred"), then the best of four quarter turns about the vertical through that centre ("turned"), or
 instead the best uniform scale in 0.75-1.33 about its bottom centre ("scaled"). What is left after them is
 the shape.
+
+With `--figures DIR`, every ground-truth object gets a picture, DIR/BAG_gtID.png (`result_figure.draw_object_stages`):
+its surface and its stage meshes from above, as its cameras see it and from the side along their mean viewing
+direction, with the association's box centre and the rays from the cameras that saw it; a missed object is drawn
+with the nearest estimate of its class within 1.5 m, if any.
 
 The last line sums the set up: objects found of all ground-truth objects, the mean final F1@5cm per class, and
 the F1 with every missed object counted as 0. Single objects' figures move with the dense stage's pixel draws
@@ -42,6 +47,9 @@ from pathlib import Path                                      # noqa: E402
 import numpy as np                                            # noqa: E402
 
 from frodo_bringup.pipeline import PipelineConfig, reconstruct   # noqa: E402
+from frodo_bringup.result_figure import draw_object_stages       # noqa: E402
+from frodo_common import conversions as conv, topics              # noqa: E402
+from frodo_common.bag import BagReader                            # noqa: E402
 from frodo_common.evaluation import (EvalObject, evaluate, load_ground_truth, point_metrics,   # noqa: E402
                                      sample_surface)
 
@@ -77,8 +85,40 @@ def gt_families(bag: str) -> dict[int, str]:
     return {int(o['id']): o.get('family') for o in objects if 'id' in o}
 
 
-def score_bag(bag: str, config: PipelineConfig | None, oracle: bool = False) -> tuple[list[dict], str, int]:
-    """(one row per matched object, the bag's summary line, its number of ground-truth objects)."""
+def camera_centres(bag: str) -> dict[int, np.ndarray]:
+    """Stamp -> camera centre (3,) of every pose message of the bag."""
+    poses = (m.decode() for m in BagReader(bag).messages([topics.POSE]))
+    return {conv.stamp_to_ns(p.header.stamp): conv.pose_to_matrix(p.pose)[:3, 3] for p in poses}
+
+
+def draw_objects(bag: str, gt: list, report, result, meshes: dict, out_dir: Path, search: float = 1.5) -> None:
+    """One figure per ground-truth object (`result_figure.draw_object_stages`): its matched estimate's stages, or
+    for a missed object those of the nearest estimate of its class within `search` m (none: the truth alone)."""
+    cams = camera_centres(bag)
+    pred_of = {p.gt_id: p.pred_id for p in report.pairs}
+    for g in gt:
+        pred = pred_of.get(g.id)
+        note = ''
+        if pred is None:
+            near = [(float(np.linalg.norm(e.mesh_world.bounds.mean(0) - g.mesh.bounds.mean(0))), oid)
+                    for oid, e in result.estimates.items() if e.class_name == g.class_name]
+            near = [n for n in near if n[0] < search]
+            pred = min(near)[1] if near else None
+            note = 'missed' + (f', nearest estimate {pred}' if pred is not None else '')
+        seen = [cams[stamp] for stamp, rows in result.associations.items()
+                if pred is not None and stamp in cams and np.any(rows['object_id'] == pred)]
+        box = result.tracks[pred][1].center if pred is not None and pred in result.tracks else None
+        f1 = next((f'F1@5cm {p.f1:.1f}' for p in report.pairs if p.gt_id == g.id), note)
+        draw_object_stages(g, meshes.get(pred, {}) if pred is not None else {}, np.array(seen).reshape(-1, 3),
+                           out_dir / f'{Path(bag).stem}_gt{g.id}.png', box_centre=box,
+                           title=f'{Path(bag).stem}, ground truth {g.id} ({g.class_name}): {f1}, '
+                                 f'{len(seen)} frames associated')
+
+
+def score_bag(bag: str, config: PipelineConfig | None, oracle: bool = False,
+              figures: Path | None = None) -> tuple[list[dict], str, int]:
+    """(one row per matched object, the bag's summary line, its number of ground-truth objects); figures: also
+    draw every ground-truth object into this folder (`draw_objects`)."""
     gt = load_ground_truth(bag)
     meshes: dict[int, dict[str, object]] = {}
 
@@ -109,6 +149,8 @@ def score_bag(bag: str, config: PipelineConfig | None, oracle: bool = False) -> 
         if oracle:
             row['oracle'] = oracle_f1(result.estimates[pair.pred_id].mesh_world, g.mesh)
         rows.append(row)
+    if figures is not None:
+        draw_objects(bag, gt, report, result, meshes, figures)
     missed = [truth[i].class_name for i in report.unmatched_gt]
     line = (f'{Path(bag).name}: {len(report.pairs)}/{len(gt)} found, {len(report.unmatched_pred)} FP, '
             f'F1 {report.overall.f1:.1f}, missed {missed}, {seconds:.0f} s')
@@ -178,6 +220,9 @@ def main(argv: list[str] | None = None) -> int:
                         help='also score each final mesh after ground-truth corrections (centred, turned, scaled)')
     parser.add_argument('--dense-seeds', default='',
                         help='comma-separated dense-stage seeds: the whole set once per seed (default: the config\'s)')
+    parser.add_argument('--figures', type=Path, default=None,
+                        help='draw every ground-truth object with its stages into this folder: from above, as seen '
+                             'and from the side along the view (BAG_gtID.png)')
     parser.add_argument('--threads', type=int, default=0, help='torch threads (default: torch\'s own)')
     args = parser.parse_args(argv)
     if args.threads > 0:
@@ -193,7 +238,7 @@ def main(argv: list[str] | None = None) -> int:
         seed_rows: list[dict] = []
         n_truth = 0
         for bag in args.bags:
-            bag_rows, line, n_gt = score_bag(bag, run_config, args.oracle)
+            bag_rows, line, n_gt = score_bag(bag, run_config, args.oracle, args.figures)
             print(prefix + line, flush=True)
             for row in bag_rows:
                 print(object_line(row), flush=True)

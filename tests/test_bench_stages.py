@@ -14,11 +14,14 @@ def _bench():
     return module
 
 
-def test_every_stage_of_the_orbit_bags_object_is_scored(capsys):
+def test_every_stage_of_the_orbit_bags_object_is_scored(capsys, tmp_path):
     bench = _bench()
-    rows, line, n_truth = bench.score_bag(str(REPO / 'bags' / 'demo_orbit.mcap'), None)
+    rows, line, n_truth = bench.score_bag(str(REPO / 'bags' / 'demo_orbit.mcap'), None, figures=tmp_path)
     assert line.startswith('demo_orbit.mcap: 1/1 found, 0 FP') and n_truth == 1
     (row,) = rows
+    assert row['gt'] == 1 and row['family'] == 'four_leg'      # from the bag's .gt.json sidecar
+    assert [p.name for p in tmp_path.iterdir()] == ['demo_orbit_gt1.png']
+    assert (tmp_path / 'demo_orbit_gt1.png').read_bytes()[:4] == b'\x89PNG'
     assert set(bench.STAGES) <= set(row)
     assert row['assoc_cm'] < 10 and row['dense']['centre_cm'] < 5
     # the orbit sees its object whole: each stage keeps the placement good, and dense is no worse than fused
@@ -28,6 +31,18 @@ def test_every_stage_of_the_orbit_bags_object_is_scored(capsys):
     assert 'fused c' in text and 'dense c' in text
     (pooled,) = [p for p in bench.pooled_lines(rows) if ' dense ' in p]
     assert pooled.split()[0] == row['class'].split()[0] and 'n   1' in pooled
+
+
+def test_the_object_figures_frame_points_along_the_view_from_its_cameras():
+    import numpy as np
+    from frodo_bringup.result_figure import view_frame
+    centre = np.array([1.0, 2.0, 0.4])
+    cameras = np.array([[1.0, -1.0, 1.5], [1.5, -0.8, 1.5]])          # south of the object, looking north
+    R = view_frame(centre, cameras)
+    assert np.allclose(R @ R.T, np.eye(3))
+    along, across, up = R @ (np.array([1.0, 2.5, 0.4]) - centre)      # half a metre beyond it
+    assert along > 0.49 and abs(across) < 0.1 and up == 0.0
+    assert np.allclose(view_frame(centre, np.zeros((0, 3))), np.eye(3))   # no cameras: world axes
 
 
 def test_the_oracle_scores_undo_a_shift_a_quarter_turn_and_a_scale():

@@ -3,7 +3,8 @@ truth in grey, predictions coloured by class, each matched pair labelled with it
 
     python -m frodo_bringup.result_figure out/demo bags/demo_walk.mcap out/demo/result.png
 
-`frodo demo` writes it as DIR/result.png.
+`frodo demo` writes it as DIR/result.png. `draw_object_stages` draws one object's optimiser stages against its
+ground truth in the frame of the cameras that saw it (`bench/bench_stages.py --figures`).
 """
 from __future__ import annotations
 
@@ -12,10 +13,12 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
+import numpy as np
 
 from frodo_common.evaluation import EvalObject, EvaluationResult, sample_surface
 
 CLASS_COLOURS = {'chair': '#f28c26', 'dining table': '#3399f2'}
+STAGE_COLOURS = {'fused': '#f2b600', 'sparse': '#3366cc', 'dense': '#d62728'}
 SAMPLES = 1500
 
 
@@ -57,6 +60,62 @@ def draw_result(pred: Sequence[EvalObject], gt: Sequence[EvalObject], result: Ev
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def view_frame(centre: np.ndarray, cameras: np.ndarray) -> np.ndarray:
+    """Rotation (3, 3) to (along the view, across it, up) coordinates: 'along' is the horizontal mean direction
+    from the camera centres (C, 3) to `centre` (world x when there are none)."""
+    look = (centre - cameras)[:, :2] if len(cameras) else np.array([[1.0, 0.0]])
+    look = look / np.maximum(np.linalg.norm(look, axis=1, keepdims=True), 1e-9)
+    d = look.mean(0)
+    d = d / np.linalg.norm(d) if np.linalg.norm(d) > 1e-9 else np.array([1.0, 0.0])
+    return np.array([[d[0], d[1], 0.0], [-d[1], d[0], 0.0], [0.0, 0.0, 1.0]])
+
+
+def draw_object_stages(truth: EvalObject, stages: dict, cameras: np.ndarray, path: str | Path, title: str = '',
+                       box_centre: np.ndarray | None = None) -> Path:
+    """One object's stage meshes (`stages`: {'fused' | 'sparse' | 'dense': trimesh mesh, world frame}) against its
+    ground truth, in three panels centred on the truth: from above, as the cameras see it (across the view, up)
+    and from the side (along the view, up), where an error in depth along the view shows. cameras: (C, 3) world
+    centres of the cameras whose detections were associated with the object, drawn as rays in the top panel;
+    box_centre: the association's box centre (+). Writes `path` (PNG) and returns it."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    centre = truth.mesh.bounds.mean(0)
+    span = max(1.0, 0.6 * float(np.max(truth.mesh.extents)) + 0.4)      # metres either side of the truth's centre
+    R = view_frame(centre, cameras)
+    local = lambda p: (np.asarray(p, float) - centre) @ R.T       # noqa: E731  (along, across, up)
+    fig, axes = plt.subplots(1, 3, figsize=(15, 5))
+    panels = ((0, 1, 'from above', 'along the view (m)', 'across (m)'), (1, 2, 'as seen', 'across (m)', 'up (m)'),
+              (0, 2, 'from the side', 'along the view (m)', 'up (m)'))
+    clouds = [('ground truth', '0.6', local(sample_surface(truth.mesh, SAMPLES, seed=0)))]
+    clouds += [(name, STAGE_COLOURS.get(name, 'k'), local(sample_surface(mesh, SAMPLES, seed=1)))
+               for name, mesh in stages.items()]
+    for ax, (i, j, name, xlabel, ylabel) in zip(axes, panels):
+        for label, colour, pts in clouds:
+            ax.scatter(pts[:, i], pts[:, j], s=1, c=colour, linewidths=0, alpha=0.6)
+        if box_centre is not None:
+            b = local(box_centre[None])[0]
+            ax.plot(b[i], b[j], '+', c='k', ms=14, mew=2)
+        ax.set(title=name, xlabel=xlabel, ylabel=ylabel, aspect='equal')
+        ax.set_xlim(-span, span)
+    for cam in local(cameras):
+        axes[0].plot([cam[0], 0.0], [cam[1], 0.0], '-', c='green', lw=0.6, alpha=0.5)
+    axes[0].set_ylim(-span, span)
+    handles = [plt.Line2D([], [], ls='', marker='o', color=colour, label=label) for label, colour, _ in clouds]
+    handles += [plt.Line2D([], [], ls='', marker='+', color='k', mew=2, label='association box centre')] \
+        if box_centre is not None else []
+    handles += [plt.Line2D([], [], color='green', label='rays from its cameras')] if len(cameras) else []
+    fig.legend(handles=handles, loc='lower center', ncol=len(handles), fontsize=9)
+    fig.suptitle(title)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=80)
     plt.close(fig)
     return path
 
