@@ -145,7 +145,9 @@ def score_bag(bag: str, config: PipelineConfig | None, oracle: bool = False,
         for stage, mesh in meshes.get(pair.pred_id, {}).items():
             scored = evaluate([EvalObject(pair.pred_id, pair.class_name, mesh)], [g]).pairs
             row[stage] = {'centre_cm': 100 * float(np.linalg.norm(mesh.bounds.mean(0)[:2] - centre[:2])),
-                          'f1': scored[0].f1 if scored else 0.0, 'comp': scored[0].comp if scored else 0.0}
+                          'f1': scored[0].f1 if scored else 0.0, 'comp': scored[0].comp if scored else 0.0,
+                          'top_cm': 100 * float(mesh.bounds[1, 2] - g.mesh.bounds[1, 2]),
+                          'bottom_cm': 100 * float(mesh.bounds[0, 2] - g.mesh.bounds[0, 2])}
         if oracle:
             row['oracle'] = oracle_f1(result.estimates[pair.pred_id].mesh_world, g.mesh)
         rows.append(row)
@@ -215,7 +217,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('bags', nargs='+')
     parser.add_argument('--params', action='append', default=[], help='parameter YAML (repeatable)')
     parser.add_argument('--json', help='write the per-object rows here (keyed by bag and ground-truth id `gt`, '
-                        'with the ground truth\'s shape `family` where the bag has a `.gt.json` sidecar)')
+                        'with the ground truth\'s shape `family` where the bag has a `.gt.json` sidecar, and per '
+                        'stage the mesh top\'s and bottom\'s height above the truth\'s: `top_cm`, `bottom_cm`)')
     parser.add_argument('--oracle', action='store_true',
                         help='also score each final mesh after ground-truth corrections (centred, turned, scaled)')
     parser.add_argument('--dense-seeds', default='',
