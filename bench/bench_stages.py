@@ -155,7 +155,7 @@ def score_bag(bag: str, config: PipelineConfig | None, oracle: bool = False,
         draw_objects(bag, gt, report, result, meshes, figures)
     missed = [truth[i].class_name for i in report.unmatched_gt]
     line = (f'{Path(bag).name}: {len(report.pairs)}/{len(gt)} found, {len(report.unmatched_pred)} FP, '
-            f'F1 {report.overall.f1:.1f}, missed {missed}, {seconds:.0f} s')
+            f'F1 {"-" if report.overall.f1 is None else f"{report.overall.f1:.1f}"}, missed {missed}, {seconds:.0f} s')
     return rows, line, len(gt)
 
 

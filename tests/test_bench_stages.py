@@ -83,3 +83,15 @@ def test_the_summary_counts_misses_as_zero_and_dense_seeds_each_run_the_set(tmp_
     assert '[dense seed 0] found 1/1' in text and '[dense seed 1] found 1/1' in text
     assert 'mean over dense seeds 0,1: found 1/1' in text
     assert sorted(r['dense_seed'] for r in json.loads(out.read_text())) == [0, 1]
+
+
+def test_a_bag_where_nothing_is_found_is_reported_not_a_crash(tmp_path):
+    from frodo_bringup.pipeline import PipelineConfig
+    bench = _bench()
+    params = tmp_path / 'none.yaml'
+    params.write_text('optim_node:\n  ros__parameters:\n    min_views: 100000\n')   # no object is reconstructed
+    rows, line, n_truth = bench.score_bag(str(REPO / 'bags' / 'demo_orbit.mcap'),
+                                          PipelineConfig.from_params_files([params]), figures=tmp_path)
+    assert rows == [] and n_truth == 1
+    assert line.startswith('demo_orbit.mcap: 0/1 found, 0 FP, F1 -, missed [\'chair\']')
+    assert (tmp_path / 'demo_orbit_gt1.png').is_file()         # the missed object is drawn alone
