@@ -22,6 +22,16 @@ STAGE_COLOURS = {'fused': '#f2b600', 'sparse': '#3366cc', 'dense': '#d62728'}
 SAMPLES = 1500
 
 
+def _save(fig, path: str | Path, dpi: int) -> Path:
+    """Write a matplotlib figure to `path` (PNG; parent folders made), close it and return the path."""
+    import matplotlib.pyplot as plt
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
 def draw_result(pred: Sequence[EvalObject], gt: Sequence[EvalObject], result: EvaluationResult,
                 path: str | Path, title: str = '') -> Path:
     """Write the figure to `path` (PNG) and return it."""
@@ -57,11 +67,7 @@ def draw_result(pred: Sequence[EvalObject], gt: Sequence[EvalObject], result: Ev
                if s.f1 is not None else f'recall {s.recall:.0f} %, FP {s.false_positives}')
     fig.suptitle(f'{title}  {summary}'.strip())
     fig.tight_layout(rect=(0, 0.06, 1, 1))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, dpi=110)
 
 
 def view_frame(centre: np.ndarray, cameras: np.ndarray) -> np.ndarray:
@@ -113,11 +119,7 @@ def draw_object_stages(truth: EvalObject, stages: dict, cameras: np.ndarray, pat
     fig.legend(handles=handles, loc='lower center', ncol=len(handles), fontsize=9)
     fig.suptitle(title)
     fig.tight_layout(rect=(0, 0.07, 1, 1))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
-    return path
+    return _save(fig, path, dpi=80)
 
 
 def main(argv: list[str] | None = None) -> int:
