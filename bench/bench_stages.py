@@ -52,6 +52,7 @@ from frodo_common import conversions as conv, topics              # noqa: E402
 from frodo_common.bag import BagReader                            # noqa: E402
 from frodo_common.evaluation import (EvalObject, evaluate, load_ground_truth, point_metrics,   # noqa: E402
                                      sample_surface)
+from frodo_datasets.synth import sidecar_path                     # noqa: E402
 
 STAGES = ('fused', 'sparse', 'dense')
 ORACLES = ('as_is', 'centred', 'turned', 'scaled')
@@ -78,7 +79,7 @@ def oracle_f1(mesh, truth) -> dict[str, float]:
 
 def gt_families(bag: str) -> dict[int, str]:
     """Ground-truth object id -> shape family, from the bag's `<stem>.gt.json` sidecar (`frodo synth`), if any."""
-    sidecar = Path(bag).with_suffix('.gt.json')
+    sidecar = sidecar_path(bag)
     if not sidecar.is_file():
         return {}
     objects = json.loads(sidecar.read_text()).get('scene', {}).get('objects', [])
