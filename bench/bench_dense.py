@@ -2,9 +2,16 @@
 
     .venv/bin/python bench/bench_dense.py timing [--views 35] [--iterations 10] [--threads 2]
     .venv/bin/python bench/bench_dense.py stages BAG.mcap [BAG ...] [--ablation] [--json OUT.json]
+    .venv/bin/python bench/bench_dense.py opacity [--resolutions 32,48,64,128] [--shapes 6]
 
 `timing`: one object (a prior chair rendered from N cameras on a circle, colour + masks), seconds per dense
 iteration and for the whole stage, plus the sparse stage for reference.
+
+`opacity`: how opaque the dense silhouette (paper Eq. 8, `dense.foreground_probability`) renders the prior's
+own training shapes from the SDF volume of each resolution: rays from 20-50 degrees above the horizontal (a
+standing camera) through random points inside the shape (on its 128^3 grid), so every ray should read H ~ 1.
+Per class and family, the mean H and the share of rays under 0.5: thin parts (table tops, slats) read as partly
+transparent on a coarse volume, and a fit then thickens them.
 
 `stages` (paper Table 3 analogue; with --ablation also Table 2; --fused-only stops after fusion, to compare
 encoders: `--prior DIR`; `--code oracle` starts the optimiser from the true shape's code instead of the
@@ -39,12 +46,13 @@ from frodo_common.bag import BagReader
 from frodo_common.evaluation import point_metrics, sample_surface
 from frodo_common.geometry import look_at
 from frodo_optim.core import place_from_box
-from frodo_optim.dense import DenseConfig, refine_dense
+from frodo_optim.dense import DenseConfig, Rays, foreground_probability, refine_dense
 from frodo_optim.photometric import ViewBatch, dense_view_from_frame
 from frodo_optim.sparse import SparseConfig, pose_matrix, refine, select_views, view_from_mask
 from frodo_optim.support import class_height_range, floor_height
 from frodo_shape.crops import square_crop
 from frodo_shape.fusion import fuse_mean, fuse_vote
+from frodo_shape.meshing import grid_points, sdf_grid
 from frodo_shape.prior import DEFAULT_PRIOR, ShapePrior
 
 DEPTH_TOPICS = ('/camera/depth/image_raw', '/camera/aligned_depth_to_color/image_raw')  # contract v1.1; synth default
@@ -244,6 +252,47 @@ def stages(args) -> None:
                                                'rows': rows, 'summary': summary}, indent=1, default=str))
 
 
+# ------------------------------------------------------------------ opacity
+def opacity(args) -> None:
+    prior = ShapePrior.load(args.prior)
+    cfg = DenseConfig()
+    rng = np.random.default_rng(args.seed)
+    resolutions = [int(r) for r in args.resolutions.split(',')]
+    reference = max(resolutions)
+    groups: dict[tuple[str, str], dict[int, list[np.ndarray]]] = {}
+    for cls in sorted(set(prior.training_classes)):
+        idx = [i for i, c in enumerate(prior.training_classes) if c == cls]
+        for i in idx[::max(1, len(idx) // args.shapes)][:args.shapes]:
+            code = prior.training_codes[i].cpu().numpy()
+            grids = {r: sdf_grid(lambda p: prior.sdf_numpy(p, code), r,
+                                 coarse=4 if r == reference else max(1, cfg.grid_coarse)) for r in resolutions}
+            inside = np.argwhere(grids[reference] < 0)
+            if not len(inside):
+                continue
+            points = grid_points(reference)[tuple(inside[rng.choice(len(inside), args.rays)].T)]
+            azimuth = rng.uniform(0, 2 * np.pi, args.rays)
+            elevation = np.radians(rng.uniform(20, 50, args.rays))
+            d = np.stack([np.cos(azimuth) * np.cos(elevation), np.sin(azimuth) * np.cos(elevation),
+                          -np.sin(elevation)], 1)
+            ones = torch.ones(1, args.rays)
+            rays = Rays(torch.as_tensor(points - 2.5 * d, dtype=torch.float32)[None],
+                        torch.as_tensor(d, dtype=torch.float32)[None], ones, ones)
+            family = prior.training_shapes[i].get('family', '-')
+            for r, grid in grids.items():
+                volume = torch.as_tensor(np.ascontiguousarray(grid.transpose(2, 1, 0)))[None, None]
+                with torch.no_grad():
+                    H = foreground_probability(volume, torch.eye(3), torch.zeros(3), torch.tensor(1.0), rays,
+                                               cfg.ray_step, cfg.sharpness)
+                groups.setdefault((cls, family), {}).setdefault(r, []).append(H.reshape(-1).numpy())
+    print(f'prior {prior.path.name}: mean foreground probability H of rays through the inside of its training '
+          f'shapes (ray step {cfg.ray_step}, sharpness {cfg.sharpness:g}); in brackets, the share of rays under 0.5')
+    print(f'{"class":<14}{"family":<14}{"shapes":>7}' + ''.join(f'{f"{r}^3":>16}' for r in resolutions))
+    for (cls, family), per_res in sorted(groups.items()):
+        cells = ''.join(f'{np.concatenate(per_res[r]).mean():>8.2f} ({np.mean(np.concatenate(per_res[r]) < 0.5):4.0%})'
+                        for r in resolutions)
+        print(f'{cls:<14}{family:<14}{len(per_res[resolutions[0]]):>7}{cells}')
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest='cmd', required=True)
@@ -269,13 +318,21 @@ def main(argv=None) -> int:
                         "the start or the energy that limits the result?")
     s.add_argument('--fused-only', action='store_true',
                    help='score the fused encoder codes only (no sparse / dense stage): an encoder comparison')
-    for p in (t, s):
+    o = sub.add_parser('opacity', help="how opaque the dense silhouette renders the prior's shapes per volume "
+                                       'resolution')
+    o.add_argument('--resolutions', default='32,48,64,128', help='SDF volume resolutions; the largest is the '
+                   'reference that finds the points inside')
+    o.add_argument('--shapes', type=int, default=30, help='training shapes per class (evenly spaced)')
+    o.add_argument('--rays', type=int, default=300, help='rays per shape')
+    o.add_argument('--seed', type=int, default=0)
+    o.add_argument('--prior', default=DEFAULT_PRIOR)
+    for p in (t, s, o):
         p.add_argument('--threads', type=int, default=1)
         p.add_argument('--device', default='cpu')
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
-    return timing(args) if args.cmd == 'timing' else stages(args)
+    return {'timing': timing, 'stages': stages, 'opacity': opacity}[args.cmd](args)
 
 
 if __name__ == '__main__':

@@ -2,9 +2,19 @@
 plots written; the figures themselves are measured by running `frodo bench`, not asserted here."""
 from __future__ import annotations
 
+import importlib.util
 import json
+import re
+from pathlib import Path
 
 from frodo_bringup import bench, cli
+
+
+def _bench_dense():
+    spec = importlib.util.spec_from_file_location('bench_dense', Path(__file__).parents[1] / 'bench' / 'bench_dense.py')
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def test_sections_return_figures_and_plots_are_written(tmp_path):
@@ -42,17 +52,12 @@ def test_dense_bench_oracle_code_is_the_true_shape_in_its_object_frame(tmp_path)
     """`bench_dense.py stages --code oracle`: the ground-truth mesh is brought to its object frame with the
     sidecar's true pose before the auto-decoder fit, so the prior fits it as it fits its own shapes (a wrong
     frame, e.g. a yaw left in, fits far worse)."""
-    import importlib.util
-    from pathlib import Path
-
     import pytest
     from frodo_common.evaluation import load_ground_truth_bag
     from frodo_datasets.synth import SynthConfig, sidecar_path, synthesize
     from frodo_shape.prior import ShapePrior
 
-    spec = importlib.util.spec_from_file_location('bench_dense', Path(__file__).parents[1] / 'bench' / 'bench_dense.py')
-    bench_dense = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench_dense)
+    bench_dense = _bench_dense()
     bag = tmp_path / 'room.mcap'
     synthesize(SynthConfig(scene='orbit', objects=1, classes=('chair',), frames=2, width=64, height=48, seed=3), bag)
     (gt,) = load_ground_truth_bag(bag)
@@ -62,6 +67,18 @@ def test_dense_bench_oracle_code_is_the_true_shape_in_its_object_frame(tmp_path)
     sidecar_path(bag).unlink()
     with pytest.raises(SystemExit, match='gt.json'):
         bench_dense.oracle_code(prior, bag, gt.id, gt.mesh)
+
+
+def test_dense_bench_opacity_reads_one_row_per_family_and_every_resolution(capsys):
+    """`bench_dense.py opacity`: with one shape per class, one row per class, H per resolution within [0, 1]."""
+    bench_dense = _bench_dense()
+    bench_dense.main(['opacity', '--prior', 'furniture', '--shapes', '1', '--rays', '40', '--resolutions', '24,48'])
+    rows = capsys.readouterr().out.splitlines()[2:]
+    assert sorted(row[:14].strip() for row in rows) == ['chair', 'dining table']
+    for row in rows:
+        cells = re.findall(r'(\d\.\d\d) \(\s*(\d+)%\)', row)
+        assert len(cells) == 2
+        assert all(0.0 <= float(h) <= 1.0 and 0 <= int(share) <= 100 for h, share in cells)
 
 
 def test_stage_counts_add_up_and_are_stated_against_the_roofline(tmp_path):

@@ -242,15 +242,29 @@ def make_rays(views: list[DenseView], cfg: DenseConfig, phases: int, gen: torch.
 def dense_silhouette(volume: torch.Tensor, R: torch.Tensor, t: torch.Tensor, s: torch.Tensor, rays: Rays,
                      step: float, sharpness: float, confidence: float,
                      bounds: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
-    """Es (paper Eq. 7/8): mean over views of -log(H Pf + (1 - H)(1 - Pf)) over each view's known pixels.
+    """Es (paper Eq. 7/8): mean over views of -log(H Pf + (1 - H)(1 - Pf)) over each view's known pixels, with H
+    from `foreground_probability` (the same arguments)."""
+    H = foreground_probability(volume, R, t, s, rays, step, sharpness, bounds)
+    pf = confidence * rays.target + (1 - confidence) * (1 - rays.target)
+    nll = -torch.log((H * pf + (1 - H) * (1 - pf)).clamp_min(1e-6))
+    return ((nll * rays.weight).sum(1) / rays.weight.sum(1).clamp_min(1.0)).mean()
+
+
+def foreground_probability(volume: torch.Tensor, R: torch.Tensor, t: torch.Tensor, s: torch.Tensor, rays: Rays,
+                           step: float, sharpness: float,
+                           bounds: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+    """H (V, N) (paper Eq. 8): each ray's foreground probability, 1 - prod sig(zeta f) over samples every `step`
+    along the ray inside the cube.
 
     volume (1, 1, R, R, R): SDF grid indexed [z, y, x] over [-1, 1]^3 (grid_sample layout); R (3, 3), t (3,),
-    s (): the object pose. H = 1 - prod sig(zeta f) over samples every `step` along the ray inside the cube.
-    Differentiable in the volume values and the pose; all samples are read once without gradient, only those
-    with |zeta f| < ACTIVE_LOGIT on rays that are not saturated (log prod sig >= -ACTIVE_LOGIT) again with it (the
-    others are constants: their slope, or the ray's dH, is below e^-ACTIVE_LOGIT; issue 28).
+    s (): the object pose. Differentiable in the volume values and the pose; all samples are read once without
+    gradient, only those with |zeta f| < ACTIVE_LOGIT on rays that are not saturated (log prod sig >=
+    -ACTIVE_LOGIT) again with it (the others are constants: their slope, or the ray's dH, is below
+    e^-ACTIVE_LOGIT; issue 28).
     bounds (lo (3,), hi (3,)): the part of the cube that is sampled (None: all of it); `surface_bounds` gives the
     box beyond which every sample is a constant near 0, so rays are clipped to it (a speed-up, issue 28).
+    A part thinner than a few grid cells reads as partly transparent (its trilinear values barely negative):
+    `bench/bench_dense.py opacity` measures how much on the prior's shapes.
     """
     o = (rays.origin - t) @ R / s                                                    # (V, N, 3) object frame
     d = rays.direction @ R
@@ -289,10 +303,7 @@ def dense_silhouette(volume: torch.Tensor, R: torch.Tensor, t: torch.Tensor, s: 
     else:
         f_a = f[active]
     log_background = log_background.index_add(0, r_a, F.logsigmoid(sharpness * f_a)).reshape(V, N)
-    H = 1 - torch.exp(log_background)
-    pf = confidence * rays.target + (1 - confidence) * (1 - rays.target)
-    nll = -torch.log((H * pf + (1 - H) * (1 - pf)).clamp_min(1e-6))
-    return ((nll * rays.weight).sum(1) / rays.weight.sum(1).clamp_min(1.0)).mean()
+    return 1 - torch.exp(log_background)
 
 
 BLOCK_CELLS = 4   # side of the blocks of `_read_volume`'s empty-space test, in grid cells

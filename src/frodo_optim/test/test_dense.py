@@ -11,7 +11,7 @@ from frodo_common.evaluation import point_metrics, sample_surface
 from frodo_common.geometry import look_at
 from frodo_datasets.render import Material, Renderer, RenderObject, intrinsics
 from frodo_optim.dense import (ACTIVE_LOGIT, DenseConfig, Rays, dense_silhouette, distinct_starts,
-                               implicit_surface_points, make_rays, pyramid_levels, refine_dense, refine_dense_starts,
+                               foreground_probability, implicit_surface_points, make_rays, pyramid_levels, refine_dense, refine_dense_starts,
                                sdf_distance, so3_exp, surface_bounds, vjp_points)
 from frodo_optim.photometric import (LABEL_OBJECT, ViewBatch, dense_view_from_frame, photometric_energy, visible)
 from frodo_optim.sparse import pose_matrix
@@ -173,6 +173,32 @@ def _silhouette_every_sample(volume, R, t, s, rays, step, sharpness, confidence)
     pf = confidence * rays.target + (1 - confidence) * (1 - rays.target)
     nll = -torch.log((H * pf + (1 - H) * (1 - pf)).clamp_min(1e-6))
     return ((nll * rays.weight).sum(1) / rays.weight.sum(1).clamp_min(1.0)).mean()
+
+
+def _slab_volume(resolution: int, half_thickness: float) -> torch.Tensor:
+    """SDF volume (grid_sample layout) of a horizontal slab |z| < half_thickness (normalised units)."""
+    z = grid_points(resolution)[..., 2]
+    return torch.as_tensor(np.ascontiguousarray((np.abs(z) - half_thickness).transpose(2, 1, 0)))[None, None]
+
+
+def test_foreground_probability_of_a_slab_and_its_thin_limit():
+    """Eq. 8: a ray through a thick slab is foreground, one passing beside it is not; a slab thinner than the volume's
+    cells reads as partly transparent (what `bench_dense.py opacity` measures on the prior's shapes), and less so
+    on a finer volume."""
+    cfg = DenseConfig()
+    d = torch.tensor([[[0.0, math.cos(0.6), -math.sin(0.6)], [0.0, 0.0, -1.0]]])
+    origin = torch.tensor([[[0.0, -2.0 * math.cos(0.6), 2.0 * math.sin(0.6)], [0.0, 0.0, 2.0]]])
+    ones = torch.ones(1, 2)
+    rays = Rays(origin, d, ones, ones)
+    beside = Rays(torch.tensor([[[0.0, -2.0, 0.5]]]), torch.tensor([[[0.0, 1.0, 0.0]]]), ones[:, :1], ones[:, :1])
+    pose = (torch.eye(3), torch.zeros(3), torch.tensor(1.0))
+    thick = foreground_probability(_slab_volume(32, 0.2), *pose, rays, cfg.ray_step, cfg.sharpness)
+    assert (thick > 0.999).all()
+    above = foreground_probability(_slab_volume(32, 0.2), *pose, beside, cfg.ray_step, cfg.sharpness)
+    assert above[0, 0] < 1e-3                                               # level, 0.3 above the slab
+    thin = {r: foreground_probability(_slab_volume(r, 0.015), *pose, rays, cfg.ray_step, cfg.sharpness)
+            for r in (32, 128)}
+    assert (thin[32] < 0.95).all() and (thin[32] < thin[128]).all()
 
 
 def test_clipped_and_skipped_silhouette_equals_reading_every_sample(prior, scene):
