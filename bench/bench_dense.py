@@ -55,7 +55,7 @@ from frodo_shape.fusion import fuse_mean, fuse_vote
 from frodo_shape.meshing import grid_points, sdf_grid
 from frodo_shape.prior import DEFAULT_PRIOR, ShapePrior
 
-DEPTH_TOPICS = ('/camera/depth/image_raw', '/camera/aligned_depth_to_color/image_raw')  # contract v1.1; synth default
+DEPTH_TOPICS = (topics.DEPTH, '/camera/aligned_depth_to_color/image_raw')  # contract v1.1; synth default
 
 
 def _machine(threads: int) -> str:

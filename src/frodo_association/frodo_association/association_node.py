@@ -43,7 +43,7 @@ PARAMS: tuple[ParamSpec, ...] = tuple(
               'detections, as at the end of the input offline); 0: never.'),
     ParamSpec('camera_info_topic', topics.CAMERA_INFO, 'Camera intrinsics topic.'),
     ParamSpec('pose_topic', topics.POSE, 'Camera pose topic (T_world_camera, optical frame).'),
-    ParamSpec('depth_topic', '/camera/depth/image_raw', "Optional registered depth (16UC1 mm or 32FC1 m) giving "
+    ParamSpec('depth_topic', topics.DEPTH, "Optional registered depth (16UC1 mm or 32FC1 m) giving "
               "detections a visible-surface depth; '' disables."),
     ParamSpec('slam_points_topic', topics.SLAM_POINTS, "Optional SLAM landmarks (whole map per message) giving "
               "detections without depth a visible-surface depth; '' disables."),

@@ -22,7 +22,7 @@ Usage: python -m frodo_association.evaluate [--seeds 100-119] [--objects 2-5] [-
            recall, false tracks per scene (duplicates included) and the median centre error)
        python -m frodo_association.evaluate --bags A.mcap [B.mcap ...] [--pool] [--conditions NAME,...]
            [--set NAME=VALUE,...] [--evidence ...] [--trace]
-           (contract bags with ground truth, their /slam/points maps giving surface depths; by default clean,
+           (contract bags with ground truth, their depth images and /slam/points maps giving surface depths; by default clean,
            one row per bag; --pool: one row per condition; --set:
            AssociationConfig values; --trace: per ground-truth object, why it is or is not published)
 """
@@ -315,7 +315,8 @@ def scene_from_bag(path: str, min_iou: float = 0.3, min_inside: float = 0.9) -> 
     `min_iou`; an instance box with no such match that lies at least `min_inside` inside the projected box
     of objects of its class is the partial view of the one of them it overlaps most (a chair pushed under a
     table shows its backrest only). Without occlusion in the ground truth this is an approximation. Each
-    frame carries the latest /slam/points map stamped no later than it (as the association node sees it).
+    frame carries its registered depth image, if the bag has one at its stamp, and the latest /slam/points map
+    stamped no later than it (as the association node sees them).
     Returns (scene, notes).
     """
     from frodo_common import conversions as conv
@@ -326,8 +327,8 @@ def scene_from_bag(path: str, min_iou: float = 0.3, min_inside: float = 0.9) -> 
 
     reader = BagReader(path)
     notes = list(reader.problems)
-    info, poses, instances, objects, vertices, maps = None, {}, {}, [], [], {}
-    for m in reader.messages([topics.CAMERA_INFO, topics.POSE, topics.INSTANCES, topics.GROUND_TRUTH,
+    info, poses, instances, depths, objects, vertices, maps = None, {}, {}, {}, [], [], {}
+    for m in reader.messages([topics.CAMERA_INFO, topics.POSE, topics.INSTANCES, topics.DEPTH, topics.GROUND_TRUTH,
                               topics.SLAM_POINTS]):
         msg = m.decode()
         if m.topic == topics.CAMERA_INFO and info is None:
@@ -336,6 +337,8 @@ def scene_from_bag(path: str, min_iou: float = 0.3, min_inside: float = 0.9) -> 
             poses[conv.stamp_to_ns(msg.header.stamp)] = conv.pose_to_matrix(msg.pose)
         elif m.topic == topics.INSTANCES:
             instances[conv.stamp_to_ns(msg.header.stamp)] = conv.image_to_numpy(msg)
+        elif m.topic == topics.DEPTH:
+            depths[conv.stamp_to_ns(msg.header.stamp)] = conv.image_to_numpy(msg)
         elif m.topic == topics.SLAM_POINTS:
             points = conv.cloud_to_xyz(msg)
             maps[conv.stamp_to_ns(msg.header.stamp)] = points[np.isfinite(points).all(1)]
@@ -376,7 +379,7 @@ def scene_from_bag(path: str, min_iou: float = 0.3, min_inside: float = 0.9) -> 
         gt = {int(lab): int(row.argmax()) for lab, row in zip(labels, iou) if row.size and row.max() >= min_iou}
         latest = np.searchsorted(map_stamps, stamp, side='right') - 1
         frames.append(SynthFrame(stamp, K, poses[stamp], poses[stamp], size, instances[stamp], gt, {},
-                                 landmarks=maps[int(map_stamps[latest])] if latest >= 0 else None))
+                                 depth=depths.get(stamp), landmarks=maps[int(map_stamps[latest])] if latest >= 0 else None))
     notes.append(f'{len(frames)} frames with pose and instances, {len(objects)} ground-truth objects'
                  + (f', {len(maps)} SLAM maps' if maps else ''))
     return SynthScene(objects, frames), notes

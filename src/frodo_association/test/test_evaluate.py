@@ -48,7 +48,20 @@ def test_scene_from_bag_recovers_objects_and_labels(tmp_path):
     assert np.mean([a == b for a, b in labelled]) > 0.95
 
 
-def _write_scene_bag(scene, path):
+def test_scene_from_bag_gives_each_frame_its_depth_image(tmp_path):
+    # The trace and the box errors must see the depth the association node sees (CONTRACT v1.1).
+    scene = make_scene(2, seed=3, n_frames=6)
+    depths = {f.stamp: np.full(f.size[::-1], 1000 + 10 * k, np.uint16) for k, f in enumerate(scene.frames) if k % 2}
+    _write_scene_bag(scene, tmp_path / 'walk.mcap', depths)
+    read, _ = scene_from_bag(str(tmp_path / 'walk.mcap'))
+    for f in read.frames:
+        if f.stamp in depths:
+            np.testing.assert_array_equal(f.depth, depths[f.stamp])
+        else:
+            assert f.depth is None
+
+
+def _write_scene_bag(scene, path, depths=None):
     names = {62: 'chair', 67: 'dining table'}
     with BagWriter(path) as bag:
         f0 = scene.frames[0]
@@ -59,6 +72,8 @@ def _write_scene_bag(scene, path):
             bag.write(topics.CAMERA_INFO, conv.make_camera_info(f.K, *f.size, f.stamp, 'cam'), f.stamp)
             bag.write(topics.POSE, conv.make_pose_stamped(f.T_world_camera, f.stamp, 'world'), f.stamp)
             bag.write(topics.INSTANCES, conv.numpy_to_image(f.instances, '16UC1', f.stamp, 'cam'), f.stamp)
+            if depths and f.stamp in depths:
+                bag.write(topics.DEPTH, conv.numpy_to_image(depths[f.stamp], '16UC1', f.stamp, 'cam'), f.stamp)
 
 
 def test_partial_views_are_labelled_with_the_object_whose_box_holds_them(tmp_path):

@@ -54,9 +54,6 @@ from frodo_optim.views import ViewMemory
 from frodo_shape.encoding import PARAMS as SHAPE_PARAMS, CodeEncoder
 from frodo_shape.prior import ShapePrior
 
-DEPTH_TOPIC = '/camera/depth/image_raw'
-
-
 class PipelineError(RuntimeError):
     """The configuration is invalid or a layer failed (a bag that cannot give objects: `preflight.BagRefused`)."""
 
@@ -171,7 +168,7 @@ def bag_frames(reader: BagReader, need_instances: bool, with_rgb: bool = True) -
     """The bag's complete frames in stamp order (image + pose, + instances when `need_instances`; camera info
     seen before or with the frame). Depth and the latest landmarks are attached when present; the colour image
     is decoded only `with_rgb` (its presence still counts)."""
-    wanted = [topics.IMAGE, topics.CAMERA_INFO, topics.POSE, topics.INSTANCES, DEPTH_TOPIC, topics.SLAM_POINTS]
+    wanted = [topics.IMAGE, topics.CAMERA_INFO, topics.POSE, topics.INSTANCES, topics.DEPTH, topics.SLAM_POINTS]
     camera, landmarks = None, None
     parts: dict[int, dict[str, Any]] = {}
     required = ('image', 'pose') + (('instances',) if need_instances else ())

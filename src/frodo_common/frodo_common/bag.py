@@ -20,6 +20,8 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 from rclpy.serialization import deserialize_message, serialize_message
 
+from frodo_common import topics
+
 # rosbag2 writes "infinite" durations as this (sec, nsec) pair.
 _INFINITE = {'sec': 9223372036, 'nsec': 854775807}
 
@@ -164,8 +166,7 @@ class BagMessage:
 
 
 # Contract per-frame input topics: one message per stamp, so a repeated stamp there is a duplicate.
-FRAME_TOPICS = ('/camera/color/image_raw', '/camera/color/camera_info', '/camera/pose', '/camera/instances',
-                '/camera/depth/image_raw')
+FRAME_TOPICS = (topics.IMAGE, topics.CAMERA_INFO, topics.POSE, topics.INSTANCES, topics.DEPTH)
 # The first bytes of every MCAP file, and of the other formats users most often pass by mistake.
 MCAP_MAGIC = b'\x89MCAP0\r\n'
 _OTHER_FORMATS = ((b'SQLite format 3\x00', 'a rosbag2 SQLite (.db3) bag; convert it to MCAP first, e.g. '

@@ -9,6 +9,7 @@ IMAGE = '/camera/color/image_raw'
 CAMERA_INFO = '/camera/color/camera_info'
 POSE = '/camera/pose'
 INSTANCES = '/camera/instances'
+DEPTH = '/camera/depth/image_raw'       # optional (v1.1): registered to colour, 16UC1 mm or 32FC1 m
 SLAM_POINTS = '/slam/points'
 GROUND_TRUTH = '/ground_truth/objects'
 # Contract outputs.

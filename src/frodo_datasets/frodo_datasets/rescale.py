@@ -24,9 +24,8 @@ import numpy as np
 from frodo_common.bag import BagError, BagReader, BagWriter
 from frodo_common.conversions import (ConversionError, camera_info_to_K, image_to_numpy, make_camera_info,
                                       numpy_to_image, stamp_to_ns)
-from frodo_common.topics import CAMERA_INFO, IMAGE, INSTANCES
+from frodo_common.topics import CAMERA_INFO, DEPTH, IMAGE, INSTANCES
 from frodo_datasets.convert.common import resize_color, resize_nearest, scale_intrinsics
-from frodo_datasets.convert.writer import DEPTH_TOPIC
 
 
 def scaled_size(width: int, height: int, scale: float) -> tuple[int, int]:
@@ -44,7 +43,7 @@ def rescale_bag(src: str | Path, dst: str | Path, scale: float) -> dict[str, int
         for topic, (msgtype, _) in reader.topics().items():
             writer.add_topic(topic, msgtype)
         for m in reader.messages():
-            if m.topic in (IMAGE, INSTANCES, DEPTH_TOPIC):
+            if m.topic in (IMAGE, INSTANCES, DEPTH):
                 msg = m.decode()
                 image = image_to_numpy(msg)
                 size = scaled_size(image.shape[1], image.shape[0], scale)

@@ -37,7 +37,6 @@ from frodo_datasets.render import Light, Realism, Renderer, intrinsics
 from frodo_datasets.scene import (CONTINUOUS_PATHS, SCENE_LAYOUT, HandheldPath, Scene, compose_scene,
                                   continuous_path, trajectory)
 
-DEPTH_TOPIC = '/camera/depth/image_raw'   # CONTRACT v1.1: the graph's nodes listen here
 CAMERA_FRAME = 'camera_color_optical_frame'
 DEFAULT_START_NS = 1_700_000_000_000_000_000  # 2023-11-14T22:13:20Z
 SIDECAR_SUFFIX = '.gt.json'
@@ -91,7 +90,7 @@ class SynthConfig:
     realism: Realism = field(default_factory=Realism)
     capture: CaptureEffects = field(default_factory=CaptureEffects)
     slam_texture_min: float = 0.0
-    depth_topic: str = DEPTH_TOPIC
+    depth_topic: str = topics.DEPTH
 
 
 @dataclass

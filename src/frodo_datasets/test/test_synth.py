@@ -11,7 +11,7 @@ from frodo_common.conversions import (camera_info_to_K, cloud_to_xyz, image_to_n
                                       stamp_to_ns)
 from frodo_datasets.degrade import MaskNoise, PoseNoise, PoseNoiser, add_image_noise, degrade_instances
 from frodo_datasets.render import Renderer
-from frodo_datasets.synth import DEPTH_TOPIC, SynthConfig, sidecar_path, synthesize
+from frodo_datasets.synth import SynthConfig, sidecar_path, synthesize
 
 W, H, N = 128, 96, 10
 
@@ -34,7 +34,7 @@ def test_topics_counts_and_stamps(bag):
     result, msgs, order = bag
     assert {t: len(v) for t, v in msgs.items()} == {
         topics.GROUND_TRUTH: 1, topics.CAMERA_INFO: N, topics.IMAGE: N, topics.POSE: N, topics.INSTANCES: N,
-        DEPTH_TOPIC: N, topics.SLAM_POINTS: 4}  # SLAM map after frames 3, 6, 9 and at the end
+        topics.DEPTH: N, topics.SLAM_POINTS: 4}  # SLAM map after frames 3, 6, 9 and at the end
     assert order.index(topics.CAMERA_INFO) < order.index(topics.IMAGE)
     stamps = [t for t, _ in msgs[topics.IMAGE]]
     assert stamps == result.stamps and np.allclose(np.diff(stamps), 1e8)  # 10 fps
@@ -86,7 +86,7 @@ def test_ground_truth_slam_and_depth(bag):
     world = trimesh.util.concatenate([o.mesh for o in result.scene.render_objects()])
     _, dist, _ = trimesh.proximity.closest_point(world, points[:300])
     assert np.median(dist) < 0.02 and dist.max() < 0.06
-    depth = image_to_numpy(msgs[DEPTH_TOPIC][0][1])
+    depth = image_to_numpy(msgs[topics.DEPTH][0][1])
     assert depth.dtype == np.uint16 and 300 < np.median(depth[depth > 0]) < 15000  # millimetres
 
 

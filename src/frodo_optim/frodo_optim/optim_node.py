@@ -64,7 +64,7 @@ from frodo_shape.prior import ShapePrior
 
 PARAMS = OPTIM_PARAMS + (
     ParamSpec('image_topic', topics.IMAGE, 'Colour image topic (dense stage and photometric terms).'),
-    ParamSpec('depth_topic', '/camera/depth/image_raw', "Optional registered depth (16UC1 mm or 32FC1 m); '' disables."),
+    ParamSpec('depth_topic', topics.DEPTH, "Optional registered depth (16UC1 mm or 32FC1 m); '' disables."),
     ParamSpec('camera_info_topic', topics.CAMERA_INFO, 'Camera intrinsics topic.'),
     ParamSpec('pose_topic', topics.POSE, 'Camera pose topic (T_world_camera, optical frame).'),
     ParamSpec('slam_points_topic', topics.SLAM_POINTS, 'SLAM landmarks topic (whole map per message).'),

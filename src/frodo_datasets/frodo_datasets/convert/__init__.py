@@ -15,7 +15,7 @@ import os
 from typing import Callable
 
 from frodo_datasets.convert.common import ConvertError, ConvertOptions, ConvertSummary, Source
-from frodo_datasets.convert.writer import DEPTH_TOPIC, write_bag
+from frodo_datasets.convert.writer import write_bag
 
 FORMATS = ('scannet', 'redwood', 'tum', 'folder')
 Progress = Callable[[int], None] | None
@@ -74,5 +74,5 @@ def convert_scannet(input_path, output, options: ConvertOptions | None = None, p
     return convert('scannet', input_path, output, options, progress, **reader_options)
 
 
-__all__ = ['FORMATS', 'DEPTH_TOPIC', 'ConvertError', 'ConvertOptions', 'ConvertSummary', 'Source', 'convert',
+__all__ = ['FORMATS', 'ConvertError', 'ConvertOptions', 'ConvertSummary', 'Source', 'convert',
            'convert_folder', 'convert_redwood', 'convert_scannet', 'convert_tum', 'read_source', 'write_bag']

@@ -27,7 +27,6 @@ from frodo_datasets.convert.gravity import align_floor, align_up, camera_up, fit
 from frodo_datasets.convert.landmarks import DepthLandmarks, FeatureLandmarks
 
 # CONTRACT.md v1.1: depth registered to the colour image.
-DEPTH_TOPIC = '/camera/depth/image_raw'
 GRAVITY_MODES = ('auto', 'none', 'up', 'camera', 'floor')
 LANDMARK_MODES = ('auto', 'depth', 'features', 'none')
 # Keyframes sampled for the floor fit.
@@ -209,7 +208,7 @@ def write_bag(source: Source, output: str | os.PathLike, options: ConvertOptions
                     depth_out = register_depth(depth, K_depth, K_out, size, T_out_depth)
                     if options.depth:
                         mm = np.clip(np.round(depth_out * 1000), 0, 65535).astype(np.uint16)
-                        put(DEPTH_TOPIC, numpy_to_image(mm, '16UC1', stamp, cam), stamp)
+                        put(topics.DEPTH, numpy_to_image(mm, '16UC1', stamp, cam), stamp)
                     if isinstance(landmarks, DepthLandmarks):
                         landmarks.add(depth_out, K_out, T)
                 if inst is not None:
