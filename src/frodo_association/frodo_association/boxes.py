@@ -34,6 +34,7 @@ CLASS_SHAPES: dict[int, tuple[float, float, float]] = {
 }
 
 _BOX_SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64) / 2
+POINT_OUTSIDE_SCALE = 0.25          # m: a surface point this far outside the box counts 0.76 of it, farther ones little more
 _EDGE_AXIS = np.array([0, 1, 0, 1])                  # image axis (u, v) of the box edges (min u, min v, max u, max v)
 
 
@@ -184,12 +185,50 @@ def _horizontal_reach(R: np.ndarray, t: np.ndarray, K: np.ndarray, boxes: np.nda
     return (forward, -np.einsum('vk,vk->v', forward, eye)), surface_depth * np.einsum('vk,vk->v', forward, ray)
 
 
+def _outside_residuals(p: np.ndarray, points: np.ndarray, floor_height: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """How far each of the points (M, 3) lies outside each upright box p (S, P) (`_box_projection`'s
+    parameters) along the box's axes: residuals (S, 3M) (x, y, z per point; 0 inside; with a floor, z only above
+    the top) and their Jacobian (S, 3M, P)."""
+    on_floor = floor_height is not None
+    n_s, n_p = p.shape
+    n_c = 2 if on_floor else 3
+    size = np.exp(p[:, n_c:n_c + 3])                                    # (S, 3)
+    cos, sin = np.cos(p[:, -1])[:, None], np.sin(p[:, -1])[:, None]
+    dx, dy = points[None, :, 0] - p[:, 0:1], points[None, :, 1] - p[:, 1:2]     # (S, M)
+    local_x, local_y = cos * dx + sin * dy, -sin * dx + cos * dy
+    sign_x, sign_y = np.sign(local_x), np.sign(local_y)
+    out_x = np.abs(local_x) - size[:, 0:1] / 2
+    out_y = np.abs(local_y) - size[:, 1:2] / 2
+    jac = np.zeros((n_s, points.shape[0], 3, n_p))
+    jac[:, :, 0, 0], jac[:, :, 0, 1] = -sign_x * cos, -sign_x * sin
+    jac[:, :, 0, n_c] = -size[:, 0:1] / 2
+    jac[:, :, 0, -1] = sign_x * local_y
+    jac[:, :, 1, 0], jac[:, :, 1, 1] = sign_y * sin, -sign_y * cos
+    jac[:, :, 1, n_c + 1] = -size[:, 1:2] / 2
+    jac[:, :, 1, -1] = -sign_y * local_x
+    if on_floor:
+        out_z = points[None, :, 2] - floor_height - size[:, 2:3]          # above the top only
+        jac[:, :, 2, n_c + 2] = -size[:, 2:3]
+    else:
+        local_z = points[None, :, 2] - p[:, 2:3]
+        out_z = np.abs(local_z) - size[:, 2:3] / 2
+        jac[:, :, 2, 2] = -np.sign(local_z)
+        jac[:, :, 2, n_c + 2] = -size[:, 2:3] / 2
+    out = np.stack([out_x, out_y, out_z], axis=2)                       # (S, M, 3)
+    # Saturated at POINT_OUTSIDE_SCALE: what is left of a mask's bleed onto the background behind (a metre out)
+    # must not pull the box's far side out; the object's own points lie within a few centimetres of it.
+    x = np.maximum(out, 0.0) / POINT_OUTSIDE_SCALE
+    return ((POINT_OUTSIDE_SCALE * np.tanh(x)).reshape(n_s, -1),
+            (jac * ((out > 0) / np.cosh(x) ** 2)[..., None]).reshape(n_s, -1, n_p))
+
+
 def fit_box(K: np.ndarray, T_camera_world: np.ndarray, boxes: np.ndarray, edge_valid: np.ndarray,
             size_range: tuple[float, float], init_center: np.ndarray, floor_height: float | None = None,
             size_prior_weight: float = 0.05, anchor_weight: float = 1.0, init: Box3D | None = None,
             shape: tuple[float, float, float] | None = None, height_prior_weight: float = 0.0,
             truncation_hinge: bool = True, surface_depth: np.ndarray | None = None, surface_weight: float = 0.0,
-            surface_slack: float = 0.1, bottom_below_weight: float = 1.0) -> Box3D:
+            surface_slack: float = 0.1, bottom_below_weight: float = 1.0, points: np.ndarray | None = None,
+            points_weight: float = 0.0) -> Box3D:
     """Upright 3D box whose projection matches 2D detection boxes over several views.
 
     K: (V, 3, 3); T_camera_world: (V, 4, 4); boxes: (V, 4) detection boxes; edge_valid: (V, 4) bool, False
@@ -210,7 +249,10 @@ def fit_box(K: np.ndarray, T_camera_world: np.ndarray, boxes: np.ndarray, edge_v
     it an object whose lower part is hidden (its bottom edge above the floor contact) is fitted far behind its
     surface along the view. With a floor, a detection's bottom-edge residual is scaled by bottom_below_weight where
     the box's projection reaches below it (a detection may end above the floor contact unflagged: legs its mask
-    misses, an unlabelled occluder; it may not end below it).
+    misses, an unlabelled occluder; it may not end below it). With points (M, 3) (world, on the object's visible
+    surface: `evidence.mask_points`) and points_weight > 0, per point and box axis points_weight * sqrt(V / M) *
+    (how far the point lies outside the box along that axis, m; with a floor, above the top only): the box holds
+    the surface it was seen by, the points' term weighing about as much as one residual per view.
     Analytic Jacobian (the extreme corner of each edge). Starts: yaw 0 and pi/4 (a box is symmetric under quarter
     turns) at init_center with the prior size; with `init`, that box and the yaw-0 start.
     """
@@ -244,6 +286,10 @@ def fit_box(K: np.ndarray, T_camera_world: np.ndarray, boxes: np.ndarray, edge_v
                                             np.asarray(surface_depth, dtype=np.float64)[known]) \
         if known.any() else (None, np.zeros(0))
 
+    pts = np.zeros((0, 3)) if points is None or points_weight <= 0 else np.asarray(points, np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    pts_w = points_weight * np.sqrt(len(boxes) / max(len(pts), 1))
+
     def residuals_and_jacobian(p):                                     # p: (S, P) -> (S, M), (S, M, P)
         if reach_axis is None:
             proj, jac = _box_projection(p, R, t, f, c, floor_height, with_jacobian=True)
@@ -260,9 +306,13 @@ def fit_box(K: np.ndarray, T_camera_world: np.ndarray, boxes: np.ndarray, edge_v
                             weights * (p[:, n_center:n_center + 3] - np.log(prior)),
                             anchor_weight * (p[:, :n_center] - anchor)], axis=1)
         jac = jac / diag[:, None, None]
-        return r, np.concatenate([(jac * scale[..., None])[:, edge_valid], (jac * inside[..., None])[:, cut],
-                                  near_jac * active[..., None],
-                                  np.broadcast_to(prior_jac, (len(p),) + prior_jac.shape)], axis=1)
+        jac = np.concatenate([(jac * scale[..., None])[:, edge_valid], (jac * inside[..., None])[:, cut],
+                              near_jac * active[..., None],
+                              np.broadcast_to(prior_jac, (len(p),) + prior_jac.shape)], axis=1)
+        if not len(pts):
+            return r, jac
+        outside, outside_jac = _outside_residuals(p, pts, floor_height)
+        return np.concatenate([r, pts_w * outside], axis=1), np.concatenate([jac, pts_w * outside_jac], axis=1)
 
     lo_size, hi_size = np.log(0.05), np.log(size_range[1] * 1.2)
     lower = np.concatenate([np.full(n_center, -np.inf), np.full(3, lo_size), [-np.inf]])

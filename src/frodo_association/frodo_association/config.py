@@ -41,6 +41,9 @@ class AssociationConfig:
     box_contact_edges: bool = True
     box_surface_weight: float = 1.0
     box_bottom_below_weight: float = 0.3
+    box_points_weight: float = 1.0
+    box_points_per_detection: int = 16
+    box_max_points: int = 192
     box_refit_growth: float = 1.5
     box_max_views: int = 24
     max_box_fits_per_frame: int = 1
@@ -129,6 +132,12 @@ CONFIG_DOC: dict[str, str] = {
                                'full weight). A detection often ends above the floor contact (legs the mask '
                                'misses, something unlabelled in front), and matching it exactly stands the box on '
                                'the floor farther away.',
+    'box_points_weight': 'Box fit: weight (per metre) of the residuals that keep the visible surface inside the box: '
+                         'points back-projected from a depth image inside each detection\'s eroded mask '
+                         '(evidence.mask_points), their term weighing about one residual per view in all (0: off; '
+                         'no effect without a depth image).',
+    'box_points_per_detection': 'Depth points kept per detection for the box fit (fixed when the association starts).',
+    'box_max_points': 'Depth points used per box fit at most (evenly spread over its detections\' points).',
     'box_refit_growth': 'An object box is refitted when its detection count grew by this factor since the last fit.',
     'box_max_views': 'Detections used per box fit (evenly spread over the object\'s detections).',
     'max_box_fits_per_frame': 'Box fits per processed frame at most (bounds the per-frame latency).',

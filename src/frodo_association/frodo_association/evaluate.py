@@ -40,7 +40,7 @@ from scipy.optimize import linear_sum_assignment
 
 from frodo_association.boxes import box_iou, box_inside_fraction, canonical_yaw, clip_boxes
 from frodo_association.config import AssociationConfig, EvidenceConfig
-from frodo_association.evidence import contact_edges, surface_depths
+from frodo_association.evidence import contact_edges, depth_points, surface_depths
 from frodo_common.frames import depth_to_metres
 from frodo_association.tracker import Associator
 from frodo_association.synthetic import (BoxObject, SynthFrame, SynthScene, add_noise, make_furniture_scene,
@@ -121,17 +121,20 @@ def run_scene(scene: SynthScene, cfg: AssociationConfig, filt: FilterConfig,
         _, dets = filter_instances(frame.instances, filt)
         labels = np.array([d.label for d in dets], dtype=np.int64)
         boxes = np.array([d.bbox for d in dets], dtype=np.float64).reshape(-1, 4)
-        surface = None
+        surface, points = None, None
         landmarks = frame.landmarks if frame.landmarks is not None else scene.landmarks
         if (frame.depth is not None and 'depth' in evidence) or (landmarks is not None and 'landmarks' in evidence):
             surface = surface_depths(frame.instances, labels, frame.K, invert_transform(frame.T_world_camera_observed),
                                      depth_to_metres(frame.depth) if 'depth' in evidence and frame.depth
                                      is not None else None, landmarks if 'landmarks' in evidence else None,
                                      **e.surface_arguments())
+        if frame.depth is not None and 'depth' in evidence and len(labels):
+            points = depth_points(frame.instances, labels, depth_to_metres(frame.depth), frame.K,
+                                  frame.T_world_camera_observed, cfg, e)
         contact = contact_edges(frame.instances, labels, boxes, surface) if cfg.box_contact_edges else None
         t0 = time.perf_counter()
         assoc.add_frame(frame.stamp, frame.K, frame.T_world_camera_observed, frame.size, labels, boxes, surface,
-                        contact)
+                        contact, points)
         t1 = time.perf_counter()
         assoc.refine_boxes()
         res.assoc_ms.append(1e3 * (t1 - t0))

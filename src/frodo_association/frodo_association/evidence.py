@@ -12,11 +12,19 @@ enough evidence):
   `landmark_quantile` of their depths, when at least `min_landmarks` project there.
 The association (`tracker.Associator.add_frame(surface_depth=...)`) turns d_s into a short segment on the
 detection's ray: the object centre lies between d_s - `surface_slack` and d_s + the class's horizontal extent.
+
+From a depth image the visible surface is also kept as points (`mask_points`, world frame): the box fit keeps
+them inside the object's box (`boxes.fit_box(points=...)`), so that a table top seen from above gives the box
+its footprint and height, not only the depth of its near edge. Landmarks give no points: those inside a mask
+lie on the background as often as on the object.
 """
 from __future__ import annotations
 
 import cv2
 import numpy as np
+
+from frodo_association.tracker import class_shape
+from frodo_common.categories import category_by_id
 
 
 def _eroded_masks(instances: np.ndarray, labels: np.ndarray, erode_px: int) -> np.ndarray:
@@ -48,6 +56,45 @@ def mask_depths(instances: np.ndarray, labels: np.ndarray, depth_m: np.ndarray, 
         if len(d) >= min_pixels:
             out[k] = float(np.median(d))
     return out
+
+
+def mask_points(instances: np.ndarray, labels: np.ndarray, depth_m: np.ndarray, K: np.ndarray,
+                T_world_camera: np.ndarray, reach: np.ndarray, per_detection: int = 16, erode_px: int = 3,
+                min_pixels: int = 20) -> np.ndarray:
+    """Points (N, per_detection, 3) (world, float32; NaN rows: none) of each instance's visible surface: pixels of
+    its eroded mask with a depth measurement, back-projected, evenly spread over the mask in raster order.
+
+    Pixels more than `reach` (N,) metres (about the object's extent) nearer or farther than the mask's median
+    depth are left out: what remains of a mask's bleed onto the background or a nearer object after the
+    erosion. An instance with fewer than min_pixels measurements gets none.
+    """
+    out = np.full((len(labels), per_detection, 3), np.nan, np.float32)
+    if depth_m.shape != instances.shape:
+        raise ValueError(f'depth {depth_m.shape} does not match the detections {instances.shape}')
+    eroded = _eroded_masks(instances, labels, erode_px)
+    for k, lab in enumerate(labels):
+        v, u = np.nonzero(eroded == lab)
+        z = depth_m[v, u]
+        ok = np.isfinite(z) & (z > 0)
+        if np.count_nonzero(ok) < min_pixels:
+            continue
+        ok &= np.abs(z - np.median(z[ok])) <= reach[k]
+        v, u, z = v[ok], u[ok], z[ok]
+        pick = np.unique(np.linspace(0, len(z) - 1, per_detection).round().astype(np.int64))
+        cam = np.stack([(u[pick] - K[0, 2]) / K[0, 0] * z[pick], (v[pick] - K[1, 2]) / K[1, 1] * z[pick], z[pick]], 1)
+        out[k, :len(pick)] = cam @ T_world_camera[:3, :3].T + T_world_camera[:3, 3]
+    return out
+
+
+def depth_points(instances: np.ndarray, labels: np.ndarray, depth_m: np.ndarray, K: np.ndarray,
+                 T_world_camera: np.ndarray, cfg, evidence) -> np.ndarray:
+    """`mask_points` with the association's settings (`AssociationConfig` cfg, `EvidenceConfig` evidence), each
+    instance's reach its class's typical horizontal diagonal: what the association node, the offline pipeline and the
+    evaluation pass to `Associator.add_frame(surface_points=...)`."""
+    reach = np.array([np.hypot(*class_shape(int(lab) >> 8, c.size_range)[:2]) if c is not None else 0.0
+                      for lab, c in zip(labels, map(category_by_id, labels >> 8))])
+    return mask_points(instances, labels, depth_m, K, T_world_camera, reach, cfg.box_points_per_detection,
+                       evidence.evidence_erode_px, evidence.evidence_min_pixels)
 
 
 def landmark_depths(instances: np.ndarray, labels: np.ndarray, points_world: np.ndarray, K: np.ndarray,

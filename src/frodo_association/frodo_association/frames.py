@@ -9,7 +9,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from frodo_association.config import AssociationConfig, EvidenceConfig
-from frodo_association.evidence import contact_edges, surface_depths
+from frodo_association.evidence import contact_edges, depth_points, surface_depths
 from frodo_association.tracker import AssociationUpdate, Associator, detections_from_instances
 from frodo_common.geometry import invert_transform
 
@@ -48,7 +48,7 @@ class FrameAssociator:
             raise ValueError(f'depth {depth_m.shape[1]}x{depth_m.shape[0]} is not registered to the detections '
                              f'{instances.shape[1]}x{instances.shape[0]}')
         labels, boxes = detections_from_instances(instances)
-        surface, evidence_ms = None, None
+        surface, points, evidence_ms = None, None, None
         if landmarks is not None and not len(landmarks):
             landmarks = None
         if (depth_m is not None or landmarks is not None) and len(labels):
@@ -56,11 +56,13 @@ class FrameAssociator:
             t0 = time.perf_counter()
             surface = surface_depths(instances, labels, K, invert_transform(T_world_camera), depth_m, landmarks,
                                      **e.surface_arguments())
+            if depth_m is not None:
+                points = depth_points(instances, labels, depth_m, K, T_world_camera, self.associator.cfg, e)
             evidence_ms = 1e3 * (time.perf_counter() - t0)
         contact = (contact_edges(instances, labels, boxes, surface) if self.associator.cfg.box_contact_edges
                    else None)
         t0 = time.perf_counter()
-        update = self.associator.add_frame(stamp, K, T_world_camera, size, labels, boxes, surface, contact)
+        update = self.associator.add_frame(stamp, K, T_world_camera, size, labels, boxes, surface, contact, points)
         t1 = time.perf_counter()
         refined = self.associator.refine_boxes()
         t2 = time.perf_counter()

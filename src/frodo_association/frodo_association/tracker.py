@@ -165,6 +165,7 @@ class Associator:
                            frame=((), np.int64, 0), assign=((), np.int64, -1), kept=((), bool, False),
                            valid=((), bool, False), reliable=((), bool, False), truncated=((), bool, False),
                            evidence=((), bool, False), surface=((), np.float64, np.nan),
+                           points=((self.cfg.box_points_per_detection, 3), np.float32, np.nan),
                            sent_id=((), np.int64, -1), sent_kept=((), bool, False),   # as last published
                            slot=((), np.int64, 0))                                    # position in its frame
         self.frames = _Table(stamp=((), np.int64, 0), K=((3, 3), np.float64, 0.0),
@@ -186,7 +187,7 @@ class Associator:
     # ------------------------------------------------------------ public API
     def add_frame(self, stamp: int, K: np.ndarray, T_world_camera: np.ndarray, size: tuple[int, int],
                   labels: np.ndarray, boxes: np.ndarray, surface_depth: np.ndarray | None = None,
-                  contact: np.ndarray | None = None) -> AssociationUpdate:
+                  contact: np.ndarray | None = None, surface_points: np.ndarray | None = None) -> AssociationUpdate:
         """Associate one frame's detections (clustering, merges, confirmation, pruning with the current boxes).
 
         stamp: frame stamp (ns); K: (3, 3); T_world_camera: (4, 4); size: image (width, height);
@@ -200,6 +201,9 @@ class Associator:
         class's typical projected height (not cut vertically) is occluded: it joins clusters but opens none.
         contact: optional (N, 4) bool, box edges where the mask meets another instance (`evidence.contact_edges`):
         with `box_contact_edges` the box fit treats them like edges on the image border.
+        surface_points: optional (N, k, 3) world points of each detection's visible surface from a depth image
+        (`evidence.mask_points`, NaN: none; the first box_points_per_detection are kept): the box fit keeps them
+        inside the box (`box_points_weight`).
         """
         if stamp in self.frame_index:
             return AssociationUpdate(stamp, self.frame_table(stamp))
@@ -262,8 +266,14 @@ class Associator:
                                                 cfg.floor_height + 0.5 * size_ranges[:, 1] * (1 + cfg.depth_margin))
         evidence_opens = has_depth & cfg.evidence_opens_clusters & ~occluded
         opens = (cfg.truncated_opens_clusters | ~truncated | evidence_opens) & ~occluded
+        points = np.full((len(labels), cfg.box_points_per_detection, 3), np.nan, np.float32)
+        if surface_points is not None:
+            given = np.asarray(surface_points, dtype=np.float32)[:, :cfg.box_points_per_detection]
+            if given.shape[0] != len(labels):
+                raise ValueError(f'surface_points has {given.shape[0]} entries for {len(labels)} detections')
+            points[:, :given.shape[1]] = np.where(valid[:, None, None], given, np.nan)
         fi = len(self.frames)
-        rows = self.rows.append(segment=segments, box=boxes, edge_valid=edge_valid, fit_edges=fit_edges,
+        rows = self.rows.append(points=points, segment=segments, box=boxes, edge_valid=edge_valid, fit_edges=fit_edges,
                                 label=labels, coco=coco,
                                 frame=np.full(len(labels), fi), assign=np.full(len(labels), -1),
                                 kept=np.zeros(len(labels), bool), valid=valid, slot=np.arange(len(labels)),
@@ -982,12 +992,17 @@ class Associator:
         if not fit_edges.any():
             fit_edges = np.ones_like(fit_edges)
         category = category_by_id(track.coco_id)
+        points = self.rows.points[members].reshape(-1, 3)
+        points = points[np.isfinite(points[:, 0])]
+        if len(points) > cfg.box_max_points:
+            points = points[np.linspace(0, len(points) - 1, cfg.box_max_points).round().astype(int)]
         track.box = fit_box(self.frames.K[frames], self.frames.T_camera_world[frames], self.rows.box[members],
                             fit_edges, category.size_range, track.center,
                             cfg.floor_height if cfg.objects_on_floor else None, cfg.size_prior_weight,
                             cfg.center_anchor_weight, track.box, class_shape(track.coco_id, category.size_range),
                             cfg.height_prior_weight, cfg.box_truncation_hinge, self.rows.surface[members],
-                            cfg.box_surface_weight, cfg.surface_slack, cfg.box_bottom_below_weight)
+                            cfg.box_surface_weight, cfg.surface_slack, cfg.box_bottom_below_weight, points,
+                            cfg.box_points_weight)
         return track.box
 
     def _prune_frames(self, frame_indices: list[int]) -> None:

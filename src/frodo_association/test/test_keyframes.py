@@ -4,7 +4,7 @@ spurious detection in one keyframe is not)."""
 import numpy as np
 
 from frodo_association.config import AssociationConfig
-from frodo_association.evidence import contact_edges, landmark_depths, mask_depths, surface_depths
+from frodo_association.evidence import contact_edges, landmark_depths, mask_depths, mask_points, surface_depths
 from frodo_association.segments import complete_truncated_boxes, point_segment_distance
 from frodo_association.synthetic import BoxObject, render_instances
 from frodo_association.tracker import Associator, detections_from_instances
@@ -26,6 +26,23 @@ def test_mask_depth_is_the_median_inside_the_eroded_mask():
     assert d[0] == 2.0 and np.isnan(d[1])
     mm = depth_to_metres(np.array([[0, 1500]], np.uint16))
     assert np.isnan(mm[0, 0]) and mm[0, 1] == 1.5
+
+
+def test_mask_points_lie_on_the_visible_surface_in_the_world():
+    inst = np.zeros((60, 80), np.uint16)
+    inst[10:40, 20:60] = CHAIR * 256 + 1          # bleeds 2 px onto the wall behind: left after a 1 px erosion
+    inst[50:52, 5:7] = CHAIR * 256 + 2            # 4 pixels: too few
+    depth = np.full((60, 80), 5.0, np.float32)
+    depth[12:38, 22:58] = 2.0
+    T_wc = look_at([0.0, -3.0, 1.2], [0.0, 0.0, 1.0])
+    labels = np.array([CHAIR * 256 + 1, CHAIR * 256 + 2])
+    pts = mask_points(inst, labels, depth, K, T_wc, reach=np.array([1.0, 1.0]), per_detection=16, erode_px=1,
+                      min_pixels=20)
+    assert pts.shape == (2, 16, 3) and np.isnan(pts[1]).all() and np.isfinite(pts[0]).all()
+    cam = (pts[0] - T_wc[:3, 3]) @ T_wc[:3, :3]                        # back in the camera frame
+    np.testing.assert_allclose(cam[:, 2], 2.0, atol=1e-5)             # the wall's pixels (5 m) are left out
+    u = K[0, 0] * cam[:, 0] / cam[:, 2] + K[0, 2]
+    assert u.min() < 26 and u.max() > 53                               # spread over the mask
 
 
 def test_contact_edges_are_where_a_mask_meets_a_nearer_instance():

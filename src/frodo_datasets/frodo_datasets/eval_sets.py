@@ -35,7 +35,9 @@ tables and 3 chairs, nearly every chair pushed under a table on the side away fr
 
 Variants (`VARIANTS`) are the same rooms under different conditions: `full` (every condition of the set's
 preset, `EvalSet.preset`: `handheld` or `realwalk`, 35 keyframes), `full100` (the same, 100 views), `full640`
-(the same at 640x480, a Kinect's size, instead of 320x240, with the detector's pixel errors doubled), and one
+(the same at 640x480, a Kinect's size, instead of 320x240, with the detector's pixel errors doubled), `depth`
+(the same rooms and keyframes with a registered Kinect-like depth image, CONTRACT v1.1, as RGB-D captures
+such as ScanNet, Redwood or TUM have), and one
 condition of the `handheld` preset at a time on top of `plain` (the
 project's usual regime: a room walk of 60 consecutive clean frames): `truncation` (close-range hand-held
 path, 100 views, clean), `keyframes` (the same path at 35 keyframes), `occlusion` (chairs pushed under
@@ -149,6 +151,7 @@ VARIANTS: dict[str, Callable[[SynthConfig], SynthConfig]] = {
     'full': _variant(**_HANDHELD),
     'full100': _variant(**{**_HANDHELD, 'frames': 100}),
     'full640': lambda config: at_image_scale(_variant(**_HANDHELD)(config), 2),
+    'depth': _variant(**_HANDHELD, depth=True),
     'plain': _variant(**_PLAIN),
     'truncation': _variant(scene='handheld', frames=100),
     'keyframes': _variant(scene='handheld', frames=35),
@@ -162,16 +165,19 @@ VARIANTS: dict[str, Callable[[SynthConfig], SynthConfig]] = {
 }
 
 
-# variant -> (frames (None: the preset's), image scale) on the set's preset
-PRESET_VARIANTS = {'full': (None, 1), 'full100': (100, 1), 'full640': (None, 2)}
+# variant -> (frames (None: the preset's), image scale, registered depth) on the set's preset
+PRESET_VARIANTS = {'full': (None, 1, False), 'full100': (100, 1, False), 'full640': (None, 2, False),
+                   'depth': (None, 1, True)}
 
 
 def scene_config(eval_set: EvalSet, seed: int, objects: int, variant: str) -> SynthConfig:
-    """SynthConfig of one room of `eval_set` under `variant` (`full`, `full100`, `full640`: the set's preset)."""
+    """SynthConfig of one room of `eval_set` under `variant` (`full`, `full100`, `full640`, `depth`: the set's
+    preset)."""
     base = SynthConfig(objects=objects, classes=eval_set.classes, seed=seed, family_set=eval_set.family_set)
     if variant in PRESET_VARIANTS:
-        frames, scale = PRESET_VARIANTS[variant]
-        config = replace(base, **{**preset_kwargs(eval_set.preset), **({'frames': frames} if frames else {})})
+        frames, scale, depth = PRESET_VARIANTS[variant]
+        config = replace(base, **{**preset_kwargs(eval_set.preset), **({'frames': frames} if frames else {}),
+                                  'depth': depth})
         return at_image_scale(config, scale)
     return VARIANTS[variant](base)
 

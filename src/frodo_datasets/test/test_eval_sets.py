@@ -49,6 +49,7 @@ def test_variants_change_one_condition_at_a_time():
     assert {k for k in full['mask_noise'] if big['mask_noise'][k] != full['mask_noise'][k]} == \
         {'morph_px', 'boundary_px', 'bleed_px'}
     assert big['mask_noise']['bleed_px'] == 2 * full['mask_noise']['bleed_px']
+    assert {k for k in full if configs['depth'][k] != full[k]} == {'depth'} and configs['depth']['depth']
     walk = SETS['realwalk-tune']
     assert scene_config(walk, walk.seeds[0], 4, 'full640').scene == scene_config(walk, walk.seeds[0], 4, 'full').scene
     plain = configs['plain']
