@@ -20,6 +20,7 @@ The sets (`REPORT_SETS`):
   12 rooms, 35 keyframes of a hand-held path with every real-capture condition);
 - `realwalk`: the held-out inside-out walks (`frodo_datasets.eval_sets`, `realwalk`, variant `full`: 12 rooms,
   35 keyframes of a walk through the middle of a room looking outwards, held-out designs; issue 27);
+- `realwalk-depth`: the same walks with a registered depth image (variant `depth`);
 - `public-real`: bags built from public real furniture models and real camera paths
   (`scripts/build_real_bags.sh` -> `data/real/build/*.mcap`); left out, with the build command on the page,
   when they have not been built.
@@ -83,9 +84,9 @@ def _realcapture(work: Path) -> list[Path]:
     return eval_sets.build(eval_sets.SETS['realcapture'], work / 'realcapture', ['full'])
 
 
-def _realwalk(work: Path) -> list[Path]:
+def _realwalk(work: Path, variant: str = 'full') -> list[Path]:
     from frodo_datasets import eval_sets
-    return eval_sets.build(eval_sets.SETS['realwalk'], work / 'realwalk', ['full'])
+    return eval_sets.build(eval_sets.SETS['realwalk'], work / 'realwalk', [variant])
 
 
 def _public_real(_: Path) -> list[Path]:
@@ -113,6 +114,10 @@ REPORT_SETS: dict[str, ReportSet] = {s.name: s for s in (
               'outwards (rotation-dominated, narrow baseline: each object seen from one side in a few keyframes), '
               'chairs behind tables, held-out designs, and the real-capture conditions of `realcapture`.',
               _realwalk),
+    ReportSet('realwalk-depth', 'Inside-out walks with depth, held out',
+              'The same held-out walks with a registered Kinect-like depth image (variant `depth`), as RGB-D '
+              'captures (ScanNet, Redwood, TUM) have: the same rooms and keyframes, other draws of the noise.',
+              lambda work: _realwalk(work, 'depth')),
     ReportSet('public-real', 'Public real furniture on real camera paths',
               'Real furniture models in their real arrangement rendered along a real hand-held trajectory '
               '(TUM fr1/xyz); provenance in data/real/README.md.', _public_real,
