@@ -65,6 +65,8 @@ _TABLE: tuple[tuple[str, tuple[str, ...], str], ...] = (
     ('sparse_yaw_candidates', ('sparse.yaw_candidates',), 'Yaw angles of the exhaustive initial search about gravity.'),
     ('sparse_w_silhouette', ('sparse.w_silhouette',), 'Weight of the silhouette energy Es (2D chamfer, box diagonals).'),
     ('sparse_w_geometry', ('sparse.w_geometry',), 'Weight of the SLAM-point energy Eg (truncated 3D chamfer); 0 disables.'),
+    ('sparse_depth_points', ('sparse.depth_points',), 'Registered-depth points of the object\'s masks (when a depth '
+     'image comes) added to the SLAM points of Eg, at most this many (beyond the paper; 0: landmarks only).'),
     ('sparse_w_code', ('sparse.w_code',), 'Weight of the code regulariser Er (squared code z-score w.r.t. training codes).'),
     ('sparse_optimise_code', ('sparse.optimise_code',), 'Optimise the shape code too (false: pose only).'),
     ('sparse_lr_code', ('sparse.lr_code',), 'Adam step size of the shape code in the sparse stage.'),

@@ -28,7 +28,7 @@ from frodo_optim.config import OptimConfig
 from frodo_optim.core import ObjectEstimate, fused_estimate, world_box
 from frodo_optim.dense import DenseResult, DenseStop, refine_dense_starts
 from frodo_optim.photometric import ViewBatch
-from frodo_optim.sparse import SparseResult, SparseStatus, refine, select_views
+from frodo_optim.sparse import SparseResult, SparseStatus, refine, select_views, with_depth_points
 from frodo_optim.states import StageReason
 from frodo_optim.views import ViewMemory
 
@@ -228,7 +228,9 @@ class ObjectReconstructor:
             colour = select_views(views.dense_views(oid), cfg.sparse.max_views)
             photometric = ViewBatch(colour) if colour else None   # sparse runs on CPU
         t0 = time.perf_counter()
-        result = refine(self.prior, obj.code, obj.box, views.sparse_views(oid), scene.slam_points, cfg.sparse,
+        landmarks = with_depth_points(scene.slam_points, [v.depth_points for v in views.dense_views(oid)],
+                                      cfg.sparse.depth_points)
+        result = refine(self.prior, obj.code, obj.box, views.sparse_views(oid), landmarks, cfg.sparse,
                         photometric=photometric, floor_height=floor,
                         height_range=support.class_height_range(fused.class_name), code_class=fused.class_name,
                         neighbour_boxes=[b for other, (_, b) in scene.tracks.items() if other != oid],

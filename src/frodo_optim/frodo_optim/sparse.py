@@ -16,7 +16,8 @@ detections in a bounded set of views:
 - Eg (geometry, paper "Eg"): one-sided 3D chamfer from SLAM landmarks inside the object's box to the
   surface points, truncated at `geometry_truncation` metres and divided by it. Beyond the paper
   (`landmark_filter`): only those in the detections' visual hull (`placement.on_silhouettes`), the set
-  returned as `SparseResult.landmarks` for the dense stage.
+  returned as `SparseResult.landmarks` for the dense stage. With a depth image the object's masked depth
+  points join the landmarks (`depth_points`, `with_depth_points`; beyond the paper).
 - Er (code regulariser, paper ||z||^2 / sigma^2): mean over dimensions of ((z - mu) / sigma)^2 with mu,
   sigma the per-dimension mean and spread of the prior's training codes (the paper's zero-mean prior,
   for codes that are not centred).
@@ -49,6 +50,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from enum import Enum
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -99,6 +101,7 @@ class SparseConfig:
     restart_screen_keep: int = 3      # the screen keeps this many times code_restarts candidates for the exact energy
     landmark_filter: bool = True      # box starts and dense stage too use only visual-hull landmarks (False: paper)
     landmark_tolerance: float = 0.06  # box diagonals off the mask a landmark may project (placement.on_silhouettes)
+    depth_points: int = 1024          # registered-depth points of the object's masks joining the landmarks of Eg (0: off)
     seed: int = 0
 
 
@@ -295,6 +298,25 @@ def _geometry(world_pts: torch.Tensor, slam: torch.Tensor | None, trunc: float) 
         nearest = torch.cdist(slam, world_pts).min(1).indices
     d = torch.linalg.norm(slam - world_pts[nearest] + 1e-9, dim=1)
     return d.clamp(max=trunc).mean() / trunc
+
+
+def with_depth_points(slam_points: np.ndarray | None, depth_points: Sequence[np.ndarray | None],
+                      limit: int) -> np.ndarray | None:
+    """The landmarks of Eg with the object's registered-depth points (per view (N_i, 3) or None, the masks'
+    back-projected pixels of `photometric.dense_view_from_frame`) added, at most `limit` of them evenly spread.
+
+    Beyond the paper, whose Eg has sparse SLAM points only: a depth image is a dense, exact map of the object's
+    visible surface, and the same truncated chamfer takes it (points of a mask's bleed cost at most the
+    truncation). Without it the sparse stage places a table from its silhouettes and a handful of landmarks."""
+    given = [np.asarray(p, np.float32).reshape(-1, 3) for p in depth_points if p is not None and len(p)]
+    if limit <= 0 or not given:
+        return slam_points
+    depth = np.concatenate(given)
+    if len(depth) > limit:
+        depth = depth[np.linspace(0, len(depth) - 1, limit).round().astype(np.int64)]
+    if slam_points is None or not len(slam_points):
+        return depth
+    return np.concatenate([np.asarray(slam_points, np.float32).reshape(-1, 3), depth])
 
 
 def slam_points_near(points: np.ndarray | None, center, size, yaw: float, margin: float = 0.1) -> np.ndarray:
