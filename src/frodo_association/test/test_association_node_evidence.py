@@ -74,6 +74,11 @@ def test_association_node_with_depth_and_landmarks():
         assert int(st['frames_with_landmarks']) == len(scene.frames) - half
         assert int(st['errors']) >= 1 and int(st['warnings']) >= 1
         assert st['evidence_ms_mean'] != 'n/a'
+        # the depth images' visible surfaces reach the box fit as points, the landmark-only frames give none
+        assoc_rows = node.frame_associator.associator
+        with_points = np.isfinite(assoc_rows.rows.points[:, 0, 0])
+        depth_frames = set(assoc_rows.rows.frame[with_points])
+        assert depth_frames and max(depth_frames) < half and 1 not in depth_frames and 2 not in depth_frames
         cubes = [m for m in tracks[-1].markers if m.action == Marker.ADD]
         assert len(cubes) == len(scene.objects)
         for m in cubes:
