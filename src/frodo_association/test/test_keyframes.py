@@ -4,7 +4,8 @@ spurious detection in one keyframe is not)."""
 import numpy as np
 
 from frodo_association.config import AssociationConfig
-from frodo_association.evidence import contact_edges, landmark_depths, mask_depths, mask_points, surface_depths
+from frodo_association.evidence import (_eroded_masks, contact_edges, landmark_depths, mask_depths, mask_points,
+                                        surface_depths)
 from frodo_association.segments import complete_truncated_boxes, point_segment_distance
 from frodo_association.synthetic import BoxObject, render_instances
 from frodo_association.tracker import Associator, detections_from_instances
@@ -26,6 +27,24 @@ def test_mask_depth_is_the_median_inside_the_eroded_mask():
     assert d[0] == 2.0 and np.isnan(d[1])
     mm = depth_to_metres(np.array([[0, 1500]], np.uint16))
     assert np.isnan(mm[0, 0]) and mm[0, 1] == 1.5
+
+
+def test_masks_eroded_in_their_boxes_equal_masks_eroded_in_the_whole_image():
+    import cv2
+    rng = np.random.default_rng(1)
+    inst = np.zeros((60, 80), np.uint16)
+    inst[0:30, 0:25] = CHAIR * 256 + 1            # touches the image corner: the border does not erode it
+    inst[20:58, 30:79] = CHAIR * 256 + 2
+    inst[40:42, 5:7] = CHAIR * 256 + 3            # vanishes when eroded: kept whole
+    inst[rng.uniform(size=inst.shape) < 0.05] = 0  # holes
+    labels = np.array([CHAIR * 256 + 1, CHAIR * 256 + 2, CHAIR * 256 + 3])
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (7, 7))
+    want = np.zeros_like(inst)
+    for lab in labels:
+        mask = (inst == lab).astype(np.uint8)
+        eroded = cv2.erode(mask, kernel)
+        want[(eroded if eroded.any() else mask) > 0] = lab
+    np.testing.assert_array_equal(_eroded_masks(inst, labels, 3), want)
 
 
 def test_mask_points_lie_on_the_visible_surface_in_the_world():

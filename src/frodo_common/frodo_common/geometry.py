@@ -105,6 +105,13 @@ def project_points(K: np.ndarray, T_camera_world: np.ndarray, points: np.ndarray
     return uv, z
 
 
+def backproject_pixels(K: np.ndarray, T_world_camera: np.ndarray, u: np.ndarray, v: np.ndarray,
+                      z: np.ndarray) -> np.ndarray:
+    """World points (N, 3) of pixels (u, v) (N,) at optical depths z (N,): the inverse of `project_points`."""
+    cam = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=1)
+    return cam @ T_world_camera[:3, :3].T + T_world_camera[:3, 3]
+
+
 def pixel_rays(K: np.ndarray, T_world_camera: np.ndarray, uv: np.ndarray):
     """World rays through pixels uv (N, 2): returns (origin (3,), unit directions (N, 3))."""
     uv = np.atleast_2d(np.asarray(uv, dtype=np.float64))

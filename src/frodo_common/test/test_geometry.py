@@ -57,3 +57,12 @@ def test_a_box_is_the_same_only_as_an_identical_one():
     assert not box.same_as(Box3D(box.center + [1e-9, 0, 0], box.size, 0.1))
     assert not box.same_as(Box3D(box.center, box.size, 0.1 + 1e-12))
     assert not box.same_as(Box3D(box.center, box.size * 1.01, 0.1))
+
+
+def test_backproject_pixels_inverts_project_points():
+    rng = np.random.default_rng(4)
+    K = np.array([[420.0, 0.0, 161.0], [0.0, 410.0, 118.0], [0.0, 0.0, 1.0]])
+    T_wc = g.look_at([1.0, -2.0, 1.4], [0.2, 0.5, 0.6])
+    points = rng.uniform([-0.5, 0.0, 0.0], [1.0, 1.5, 1.2], (50, 3))
+    uv, z = g.project_points(K, g.invert_transform(T_wc), points)
+    np.testing.assert_allclose(g.backproject_pixels(K, T_wc, uv[:, 0], uv[:, 1], z), points, atol=1e-9)

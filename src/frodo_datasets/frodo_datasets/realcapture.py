@@ -22,7 +22,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from frodo_common.geometry import invert_transform, project_points
+from frodo_common.geometry import backproject_pixels, invert_transform, project_points
 
 
 @dataclass
@@ -95,8 +95,7 @@ def blur_vector(K: np.ndarray, depth: np.ndarray, T_start: np.ndarray, T_end: np
     z = depth[v, u].astype(np.float64)
     z[z <= 0] = 5.0
     u, v, z = u.ravel().astype(np.float64), v.ravel().astype(np.float64), z.ravel()
-    cam = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=1)[:max_points]
-    world = cam @ T_start[:3, :3].T + T_start[:3, 3]
+    world = backproject_pixels(K, T_start, u[:max_points], v[:max_points], z[:max_points])
     uv, zz = project_points(K, invert_transform(T_end), world)
     ok = zz > 0.05
     if not ok.any():

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from frodo_common.geometry import look_at
+from frodo_common.geometry import backproject_pixels, look_at
 from frodo_datasets.render import Renderer, RenderObject, intrinsics
 from frodo_optim.sparse import SparseConfig, pose_matrix, refine, select_views, view_from_mask, with_depth_points
 from frodo_shape.prior import ShapePrior
@@ -181,8 +181,7 @@ def test_depth_points_place_a_table_seen_from_one_side(prior):
         v, u = np.nonzero(mask)
         pick = rng.choice(len(v), 128, replace=False)
         z = frame.depth[v[pick], u[pick]]
-        cam = np.stack([(u[pick] - K[0, 2]) / K[0, 0] * z, (v[pick] - K[1, 2]) / K[1, 1] * z, z], axis=1)
-        depth.append(cam @ Twc[:3, :3].T + Twc[:3, 3])
+        depth.append(backproject_pixels(K, Twc, u[pick], v[pick], z))
     along = centre[:2] - np.mean(eyes, axis=0)[:2]
     wrong = (centre + np.r_[0.35 * along / np.linalg.norm(along), 0.0], world.extents, 0.7)
     init = prior.training_codes.mean(0).numpy()

@@ -16,6 +16,8 @@ from typing import Callable, Sequence
 import cv2
 import numpy as np
 
+from frodo_common.geometry import backproject_pixels
+
 # Stamps of datasets without absolute timestamps start here (same origin as `frodo synth`).
 DEFAULT_START_NS = 1_700_000_000_000_000_000
 
@@ -330,5 +332,4 @@ def backproject(depth: np.ndarray, K: np.ndarray, T_world_camera: np.ndarray, st
     vs, us = np.nonzero((sub > 0) & (sub < max_depth) & np.isfinite(sub))
     z = sub[vs, us].astype(np.float64)
     u, v = us * stride, vs * stride
-    pts = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=1)
-    return pts @ T_world_camera[:3, :3].T + T_world_camera[:3, 3]
+    return backproject_pixels(K, T_world_camera, u, v, z)
