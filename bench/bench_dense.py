@@ -141,7 +141,7 @@ def _objects_of_bag(path: Path, prior, n_views: int, rng):
         for f, lab in frames:
             mask = f.instances == lab
             unknown = (f.instances > 0) & ~mask
-            sv = view_from_mask(f.K, f.T_world_camera_observed, mask, 96, unknown, rng)
+            sv = view_from_mask(f.K, f.T_world_camera_observed, mask, 96, unknown, rng, depths.get(f.stamp))
             dv = dense_view_from_frame(f.K, f.T_world_camera_observed, mask, unknown, images[f.stamp],
                                        depths.get(f.stamp), size=96, rng=rng)
             if sv is None or dv is None:

@@ -67,6 +67,11 @@ _TABLE: tuple[tuple[str, tuple[str, ...], str], ...] = (
     ('sparse_w_geometry', ('sparse.w_geometry',), 'Weight of the SLAM-point energy Eg (truncated 3D chamfer); 0 disables.'),
     ('sparse_depth_points', ('sparse.depth_points',), 'Registered-depth points of the object\'s masks (when a depth '
      'image comes) added to the SLAM points of Eg, at most this many (beyond the paper; 0: landmarks only).'),
+    ('sparse_free_space', ('sparse.free_space',), 'With a registered depth image, a decoded point that projects off '
+     'the mask costs the sparse silhouette nothing where the depth there measures a surface in front of it (hidden '
+     'by clutter, a missed detection, another object); false: it costs its distance to the mask, as without depth.'),
+    ('free_space_margin', ('sparse.free_space_margin', 'dense.free_space_margin'), 'Metres: a surface measured less '
+     'than this in front of a point (sparse) or ray sample (dense) does not hide it (depth noise).'),
     ('sparse_w_code', ('sparse.w_code',), 'Weight of the code regulariser Er (squared code z-score w.r.t. training codes).'),
     ('sparse_optimise_code', ('sparse.optimise_code',), 'Optimise the shape code too (false: pose only).'),
     ('sparse_lr_code', ('sparse.lr_code',), 'Adam step size of the shape code in the sparse stage.'),
@@ -122,6 +127,9 @@ _TABLE: tuple[tuple[str, tuple[str, ...], str], ...] = (
     ('dense_w_geometry', ('dense.w_geometry',), 'Weight of the landmark term (|SDF| at SLAM points, truncated).'),
     ('dense_w_depth', ('dense.w_depth',), 'Weight of the registered-depth term (|SDF| at masked depth pixels), when '
      'depth is present.'),
+    ('dense_free_space', ('dense.free_space',), 'With a registered depth image, a pixel off the mask that measures '
+     'a surface is background in the dense silhouette only in front of that surface (the object may be hidden '
+     'behind it: clutter, a missed detection, a hole in its mask); false: the whole ray, as without depth.'),
     ('dense_w_code', ('dense.w_code',), 'Weight of the code regulariser in the dense stage.'),
     ('dense_lr_code', ('dense.lr_code',), 'Adam step size of the shape code in the dense stage.'),
     ('dense_upright', ('dense.upright',), "Dense stage rotates objects about gravity (world z) only; false: any "

@@ -17,7 +17,9 @@ Per iteration:
      from a detection pyramid (levels l with r_min^2 < w h / 4^l < r_max^2, coarse to fine over the
      iterations; a level's target is the mask averaged over its pixel footprint); `rays_per_view` pixels
      per view and level are drawn once (seeded). Unknown pixels (other detections, outside the image) are
-     left out. The SDF along rays is read from the volume (trilinear), so the decoder runs once per grid
+     left out. With a registered depth image (`free_space`, beyond the paper) a pixel off the mask that
+     measures a surface is known only in front of it: its ray ends `free_space_margin` before that depth
+     (`Rays.limit`), and other detections' pixels count up to their surface. The SDF along rays is read from the volume (trilinear), so the decoder runs once per grid
      point, not once per ray sample (the paper's reason for the proxy volume: cost independent of views);
      rays are clipped to the surface's box and blocks of the volume outside the active band are not read
      (`surface_bounds`, `_read_volume`: those samples add log sig(zeta f) ~ 0);
@@ -85,6 +87,8 @@ class DenseConfig:
     w_photometric: float = 2.0
     w_geometry: float = 0.5
     w_depth: float = 0.5
+    free_space: bool = True            # with depth: a pixel off the mask is background only in front of its depth
+    free_space_margin: float = 0.05    # metres before the measured depth where that ray stops (`_level_rays`)
     w_code: float = 0.01
     w_floor: float = 0.05              # E_floor (support.py); needs refine_dense(..., floor_height=h)
     floor_tolerance: float = 0.05      # metres
@@ -182,13 +186,19 @@ def implicit_surface_points(sdf_fn, x0: torch.Tensor, z: torch.Tensor) -> tuple[
 # ------------------------------------------------------------------ rays of the detection pyramid
 @dataclass
 class Rays:
-    """Pixels as rays: origin (V, N, 3) and direction (V, N, 3) in the world, target (V, N) mask fraction,
-    weight (V, N) (0 for unknown pixels)."""
+    """Pixels as rays: origin (V, N, 3) and direction (V, N, 3) in the world (a point at camera depth z is
+    origin + z direction), target (V, N) mask fraction, weight (V, N) (0 for unknown pixels), limit (V, N) the
+    camera depth up to which the ray is known (inf: all of it; `_level_rays`) or None (every ray whole)."""
 
     origin: torch.Tensor
     direction: torch.Tensor
     target: torch.Tensor
     weight: torch.Tensor
+    limit: torch.Tensor | None = None
+
+    def to(self, device) -> 'Rays':
+        return Rays(*(x.to(device) if x is not None else None
+                      for x in (self.origin, self.direction, self.target, self.weight, self.limit)))
 
 
 def pyramid_levels(box_w: float, box_h: float, r_min: float, r_max: float) -> list[int]:
@@ -198,8 +208,14 @@ def pyramid_levels(box_w: float, box_h: float, r_min: float, r_max: float) -> li
     return sorted(levels, reverse=True) or [0]
 
 
-def _level_rays(view: DenseView, level: int, n: int, gen: torch.Generator):
-    """n pixels of one view at one pyramid level: (uv (n, 2), target (n,), weight (n,))."""
+def _level_rays(view: DenseView, level: int, n: int, gen: torch.Generator, free_space_margin: float | None = None):
+    """n pixels of one view at one pyramid level: (uv (n, 2), target (n,), weight (n,), limit (n,)).
+
+    With free_space_margin (metres) and the view's registered depth, a pixel none of whose footprint is this
+    object's mask but which measures a surface at camera depth d (the footprint's nearest) is known free only up
+    to d - free_space_margin (limit; beyond the paper): the object may lie behind what was measured, hidden by
+    an undetected occluder (clutter, a missed detection), where its mask has a hole, or behind another
+    detection, whose pixels then count up to their surface instead of not at all. Elsewhere limit is inf."""
     u0, v0, u1, v1 = view.crop
     side = u1 - u0
     S = view.labels.shape[0]
@@ -216,18 +232,30 @@ def _level_rays(view: DenseView, level: int, n: int, gen: torch.Generator):
     uv = torch.stack([u0 + spacing * ((idx % m).float() + 0.5), v0 + spacing * ((idx // m).float() + 0.5)], -1)
     cell = ((uv - torch.tensor([u0, v0])) / side * S).long().clamp(0, S - 1)
     fg, unknown = maps[0, 0][cell[:, 1], cell[:, 0]], maps[0, 1][cell[:, 1], cell[:, 0]]
-    return uv, fg, (unknown < 0.5).float()
+    weight, limit = (unknown < 0.5).float(), torch.full((len(uv),), math.inf)
+    if free_space_margin is not None and view.depth is not None:
+        depth = torch.as_tensor(view.depth.astype(np.float32))
+        nearest = torch.where(torch.isfinite(depth), depth, torch.full_like(depth, math.inf))
+        if k > 1:
+            nearest = -F.max_pool2d(-nearest[None, None], k, stride=1, padding=k // 2)[0, 0, :S, :S]
+        d = nearest[cell[:, 1], cell[:, 0]]
+        free = (fg == 0) & torch.isfinite(d)
+        weight = torch.where(free, torch.ones_like(weight), weight)
+        limit = torch.where(free, d - free_space_margin, limit)
+    return uv, fg, weight, limit
 
 
 def make_rays(views: list[DenseView], cfg: DenseConfig, phases: int, gen: torch.Generator) -> list[Rays]:
     """One `Rays` per phase (coarse to fine); view v at phase p uses its level levels_v[p * len / phases]."""
     per_view = [pyramid_levels(v.box[0], v.box[1], cfg.r_min, cfg.r_max) for v in views]
+    margin = cfg.free_space_margin if cfg.free_space else None
     out = []
     for p in range(phases):
-        uvs, targets, weights = [], [], []
+        uvs, targets, weights, limits = [], [], [], []
         for v, levels in zip(views, per_view):   # setup only, not per iteration
-            uv, fg, w = _level_rays(v, levels[min(len(levels) - 1, p * len(levels) // phases)], cfg.rays_per_view, gen)
-            uvs.append(uv), targets.append(fg), weights.append(w)
+            uv, fg, w, lim = _level_rays(v, levels[min(len(levels) - 1, p * len(levels) // phases)],
+                                         cfg.rays_per_view, gen, margin)
+            uvs.append(uv), targets.append(fg), weights.append(w), limits.append(lim)
         uv = torch.stack(uvs)                                                       # (V, N, 2)
         K = torch.as_tensor(np.stack([v.K for v in views]), dtype=torch.float32)
         R_wc = torch.as_tensor(np.stack([v.T_world_camera[:3, :3] for v in views]), dtype=torch.float32)
@@ -235,7 +263,8 @@ def make_rays(views: list[DenseView], cfg: DenseConfig, phases: int, gen: torch.
         direction = torch.einsum('vij,vnj->vni', R_wc, ray_cam)
         origin = torch.as_tensor(np.stack([v.T_world_camera[:3, 3] for v in views]),
                                  dtype=torch.float32)[:, None].expand_as(direction)
-        out.append(Rays(origin.contiguous(), direction, torch.stack(targets), torch.stack(weights)))
+        out.append(Rays(origin.contiguous(), direction, torch.stack(targets), torch.stack(weights),
+                        torch.stack(limits)))
     return out
 
 
@@ -278,6 +307,10 @@ def foreground_probability(volume: torch.Tensor, R: torch.Tensor, t: torch.Tenso
         t_box = torch.minimum(b1, b2).amax(-1)
         t_near = torch.maximum(t_near, t_near + torch.floor((t_box - t_near) / step) * step)
         t_far = torch.minimum(t_far, torch.maximum(b1, b2).amin(-1))
+    # a ray known only up to a measured surface (`Rays.limit`, camera depth) ends there: in the object frame the
+    # camera depth z lies at z |direction| / s along the unit direction
+    if rays.limit is not None:
+        t_far = torch.minimum(t_far, rays.limit * torch.linalg.norm(rays.direction, dim=-1) / s)
     hit = t_far > t_near
     V, N = o.shape[:2]
     with torch.no_grad():   # every sample once without gradient, flat: ray r has count[r] at t_near + (k + 1/2) step
@@ -532,8 +565,7 @@ def _dense_run(prior, code, T_world_object: np.ndarray, views: list[DenseView], 
     gen = torch.Generator().manual_seed(int(cfg.seed))
     Rg = max(8, int(cfg.grid_resolution))
     phases = max(len(pyramid_levels(v.box[0], v.box[1], cfg.r_min, cfg.r_max)) for v in views)
-    phase_rays = [Rays(*(x.to(dev) for x in (r.origin, r.direction, r.target, r.weight)))
-                  for r in make_rays(views, cfg, phases, gen)]
+    phase_rays = [r.to(dev) for r in make_rays(views, cfg, phases, gen)]
     check_rays = phase_rays[-1]
     batch = ViewBatch(views, dev)
     if box is not None:

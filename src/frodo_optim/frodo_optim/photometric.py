@@ -34,7 +34,9 @@ class DenseView:
     (pixel i covers [i - 0.5, i + 0.5));
     labels (S, S) uint8 over the crop: 0 background, 1 this object, 2 unknown (other detections, outside the
     image); rgb (S, S, 3) uint8 area-averaged colour over the crop or None; box (w, h) of the detection in
-    pixels; depth_points (N, 3) float32 world points back-projected from registered depth on the mask, or None.
+    pixels; depth_points (N, 3) float32 world points back-projected from registered depth on the mask, or None;
+    depth (S, S) float16 registered depth over the crop (camera z, metres; NaN: no measurement) or None: where
+    it measures a surface that is not this object's, the dense silhouette knows the ray free up to it only.
     """
 
     K: np.ndarray
@@ -44,21 +46,25 @@ class DenseView:
     rgb: np.ndarray | None
     box: tuple[float, float]
     depth_points: np.ndarray | None = None
+    depth: np.ndarray | None = None
 
     def nbytes(self) -> int:
         return (self.labels.nbytes + (self.rgb.nbytes if self.rgb is not None else 0)
-                + (self.depth_points.nbytes if self.depth_points is not None else 0) + 300)
+                + (self.depth_points.nbytes if self.depth_points is not None else 0)
+                + (self.depth.nbytes if self.depth is not None else 0) + 300)
 
 
 def _resample(img: np.ndarray, x0: int, y0: int, side: int, size: int, mode: str) -> np.ndarray:
     """The square pixel window img[y0:y0+side, x0:x0+side] ((H, W) or (H, W, C)) resampled to (size, size[, C]).
 
-    Pixels outside the image read LABEL_UNKNOWN ('nearest', labels) or 0 ('area', colour). The same values as
+    Pixels outside the image read LABEL_UNKNOWN ('nearest', labels; NaN for a float image) or 0 ('area', colour).
+    The same values as
     torch's `interpolate` modes of those names, in numpy: views are cut in the optimiser node's executor
     callbacks, and torch there would start an OpenMP team beside the optimiser's (`frodo_common.torch_threads`).
     """
     h, w = img.shape[:2]
-    window = np.full((side, side) + img.shape[2:], LABEL_UNKNOWN if mode == 'nearest' else 0, dtype=img.dtype)
+    outside = 0 if mode != 'nearest' else np.nan if np.issubdtype(img.dtype, np.floating) else LABEL_UNKNOWN
+    window = np.full((side, side) + img.shape[2:], outside, dtype=img.dtype)
     sx0, sy0, sx1, sy1 = max(0, x0), max(0, y0), min(w, x0 + side), min(h, y0 + side)
     if sx1 > sx0 and sy1 > sy0:
         window[sy0 - y0:sy1 - y0, sx0 - x0:sx1 - x0] = img[sy0:sy1, sx0:sx1]
@@ -121,8 +127,11 @@ def dense_view_from_frame(K, T_world_camera, mask: np.ndarray, unknown: np.ndarr
     colour = None
     if rgb is not None and np.asarray(rgb).shape[:2] == mask.shape:
         colour = _resample(np.asarray(rgb, dtype=np.uint8)[..., :3], wx0, wy0, side, size, 'area')
-    pts = None
+    pts = depth = None
     if depth_m is not None and np.asarray(depth_m).shape == mask.shape:
+        full = np.asarray(depth_m, dtype=np.float32)
+        depth = _resample(np.where(np.isfinite(full) & (full > 0.05), full, np.nan), wx0, wy0, side, size,
+                          'nearest').astype(np.float16)
         d = np.asarray(depth_m, dtype=np.float64)[ys, xs]
         ok = np.isfinite(d) & (d > 0.05)
         if ok.sum() >= 4:
@@ -131,7 +140,7 @@ def dense_view_from_frame(K, T_world_camera, mask: np.ndarray, unknown: np.ndarr
             uv1 = np.stack([xs[pick], ys[pick], np.ones(len(pick))], 1).astype(np.float64)
             cam = (np.linalg.solve(K, uv1.T) * d[pick]).T
             pts = (cam @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
-    return DenseView(K, T, tuple(float(c) for c in crop), lab, colour, (bw, bh), pts)
+    return DenseView(K, T, tuple(float(c) for c in crop), lab, colour, (bw, bh), pts, depth)
 
 
 def huber(x: torch.Tensor, delta: float) -> torch.Tensor:

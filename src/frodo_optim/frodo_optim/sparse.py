@@ -12,7 +12,9 @@ detections in a bounded set of views:
   differentiable); the mask -> points half matches `mask_samples` pixels sampled on the mask to their
   nearest projected point (nearest neighbours found without gradient, distances with gradient).
   Pixels outside the image or covered by *other* detections are "unknown" (distance 0): a truncated
-  or occluded object is not pulled into its visible part.
+  or occluded object is not pulled into its visible part. With a registered depth image (`free_space`,
+  beyond the paper) so is a point that lies more than `free_space_margin` behind the surface measured at its
+  pixel: hidden by it (clutter, a missed detection), it would not be seen.
 - Eg (geometry, paper "Eg"): one-sided 3D chamfer from SLAM landmarks inside the object's box to the
   surface points, truncated at `geometry_truncation` metres and divided by it. Beyond the paper
   (`landmark_filter`): only those in the detections' visual hull (`placement.on_silhouettes`), the set
@@ -102,6 +104,8 @@ class SparseConfig:
     landmark_filter: bool = True      # box starts and dense stage too use only visual-hull landmarks (False: paper)
     landmark_tolerance: float = 0.06  # box diagonals off the mask a landmark may project (placement.on_silhouettes)
     depth_points: int = 1024          # registered-depth points of the object's masks joining the landmarks of Eg (0: off)
+    free_space: bool = True           # with depth: a point off the mask costs nothing behind the surface measured there
+    free_space_margin: float = 0.05   # metres in front of that surface within which the point still costs
     seed: int = 0
 
 
@@ -113,7 +117,8 @@ class View:
     (units of the box diagonal, 0 on the mask and where unknown) over the crop `crop` = (u0, v0, u1, v1);
     diag: detection box diagonal in pixels; image_size (width, height); other (DT_SIZE, DT_SIZE) bool: cells
     on another detection (None: none), which the landmark selection (`placement.on_silhouettes`) tells apart
-    from the object's own mask.
+    from the object's own mask; depth (DT_SIZE, DT_SIZE) float16 registered depth over the crop (camera z,
+    metres; NaN: none) or None.
     """
 
     K: np.ndarray
@@ -124,9 +129,11 @@ class View:
     diag: float
     image_size: tuple[int, int]
     other: np.ndarray | None = None
+    depth: np.ndarray | None = None
 
     def nbytes(self) -> int:
-        return self.mask_uv.nbytes + self.dt.nbytes + (0 if self.other is None else self.other.nbytes) + 200
+        return (self.mask_uv.nbytes + self.dt.nbytes + (0 if self.other is None else self.other.nbytes)
+                + (0 if self.depth is None else self.depth.nbytes) + 200)
 
 
 class SparseStatus(Enum):
@@ -171,10 +178,11 @@ class SparseResult:
 
 # ------------------------------------------------------------------ view data
 def view_from_mask(K, T_world_camera, mask: np.ndarray, n_samples: int = 128, unknown: np.ndarray | None = None,
-                   rng: np.random.Generator | None = None) -> View | None:
+                   rng: np.random.Generator | None = None, depth_m: np.ndarray | None = None) -> View | None:
     """Compact view data from a full-resolution boolean mask; None if the mask or camera is unusable.
 
-    unknown: optional bool (H, W), pixels whose state is unknown (other detections, possible occluders).
+    unknown: optional bool (H, W), pixels whose state is unknown (other detections, possible occluders);
+    depth_m: optional (H, W) registered depth, metres (0 / NaN: none), kept on the crop's grid (`View.depth`).
     """
     checked = checked_view_inputs(K, T_world_camera, mask)
     if checked is None:
@@ -208,7 +216,13 @@ def view_from_mask(K, T_world_camera, mask: np.ndarray, n_samples: int = 128, un
     if other_sub is not None and other_sub.any():
         other = np.zeros((DT_SIZE, DT_SIZE), bool)
         other[ii, jj] = other_sub[iv[ii] - cy0, iu[jj] - cx0]
-    return View(K, T, mask_uv, dt.astype(np.float16), tuple(float(c) for c in crop), diag, (int(w), int(h)), other)
+    depth = None
+    if depth_m is not None and np.shape(depth_m) == mask.shape:
+        depth = np.full((DT_SIZE, DT_SIZE), np.nan, np.float32)
+        depth[ii, jj] = np.asarray(depth_m, dtype=np.float32)[iv[ii], iu[jj]]
+        depth = np.where(np.isfinite(depth) & (depth > 0.05), depth, np.nan).astype(np.float16)
+    return View(K, T, mask_uv, dt.astype(np.float16), tuple(float(c) for c in crop), diag, (int(w), int(h)), other,
+                depth)
 
 
 def select_views(views: list, max_views: int) -> list:
@@ -222,9 +236,12 @@ def select_views(views: list, max_views: int) -> list:
 # ------------------------------------------------------------------ energy
 class _Batch:
     """Views stacked as tensors. truncation_aware: points beyond an image side that the detection touches
-    cost nothing in the points -> mask half (unknown, like pixels outside the image inside the crop)."""
+    cost nothing in the points -> mask half (unknown, like pixels outside the image inside the crop).
+    free_space_margin (metres; None: off): with the views' registered depth, a point that lies more than this
+    behind the surface measured at its pixel costs nothing there either (beyond the paper): hidden by what was
+    measured (an undetected occluder, another detection, the object's own front), it would not be seen."""
 
-    def __init__(self, views: list[View], truncation_aware: bool = True):
+    def __init__(self, views: list[View], truncation_aware: bool = True, free_space_margin: float | None = None):
         T_cw = np.stack([np.linalg.inv(v.T_world_camera) for v in views])
         self.R = torch.as_tensor(T_cw[:, :3, :3], dtype=torch.float32)            # (V, 3, 3)
         self.t = torch.as_tensor(T_cw[:, :3, 3], dtype=torch.float32)              # (V, 3)
@@ -243,30 +260,42 @@ class _Batch:
         self.image_wh = torch.as_tensor(np.array([v.image_size for v in views], dtype=np.float32))[:, None]  # (V, 1, 2)
         _, border = placement.detection_boxes(views, DT_MARGIN)
         self.border = torch.as_tensor(border & truncation_aware)[:, None]           # (V, 1, 4) u0, v0, u1, v1
+        self.depth, self.free_space_margin = None, free_space_margin
+        if free_space_margin is not None and any(v.depth is not None for v in views):
+            depth = np.stack([np.full(v.dt.shape, np.inf, np.float32) if v.depth is None
+                              else np.nan_to_num(v.depth.astype(np.float32), nan=np.inf) for v in views])
+            self.depth = torch.as_tensor(depth)[:, None]                                # (V, 1, S, S), inf: none
 
     def unknown(self, uv: torch.Tensor) -> torch.Tensor:
         """(V, P) bool: pixels uv (V, P, 2) beyond an image side that the view's detection touches."""
         beyond = torch.cat([uv < 0, uv >= self.image_wh], -1)                        # (V, P, 4)
         return (beyond & self.border).any(-1)
 
-    def project(self, pts: torch.Tensor):
-        """World points (P, 3) -> pixels (V, P, 2) and a validity mask (V, P) (in front of the camera)."""
+    def project(self, pts: torch.Tensor, with_depth: bool = False):
+        """World points (P, 3) -> pixels (V, P, 2) and a validity mask (V, P) (in front of the camera), and with
+        with_depth their camera depths (V, P)."""
         pc = torch.einsum('vij,pj->vpi', self.R, pts) + self.t[:, None]
         z = pc[..., 2]
         valid = z > 0.05
         uv = pc[..., :2] / z.clamp_min(0.05)[..., None] * self.f[:, None] + self.c[:, None]
-        return uv, valid
+        return (uv, valid, z) if with_depth else (uv, valid)
 
     def silhouette(self, pts: torch.Tensor, subset: torch.Tensor) -> torch.Tensor:
         """Symmetric 2D chamfer (mean over views), distances in box diagonals."""
-        uv, valid = self.project(pts)
+        uv, valid, z = self.project(pts, with_depth=True)
         # points -> mask: distance transform lookup, plus the distance outside the crop
         g = (uv - self.crop_lo) / (self.crop_hi - self.crop_lo) * 2 - 1                 # (V, P, 2)
         inner = F.grid_sample(self.dt, g[:, None], mode='bilinear', padding_mode='border',
                               align_corners=False)[:, 0, 0]                              # (V, P)
         out = torch.maximum(self.crop_lo - uv, uv - self.crop_hi).clamp_min(0)
         outside = (out.square().sum(-1) + 1e-6).sqrt() - 1e-3
-        d_pm = (inner + outside / self.diag) * (~self.unknown(uv)).float()
+        known = ~self.unknown(uv)
+        if self.depth is not None:
+            with torch.no_grad():   # outside the crop the grid's border cell is read: a point there is far off anyway
+                measured = F.grid_sample(self.depth, g[:, None].detach(), mode='nearest', padding_mode='border',
+                                         align_corners=False)[:, 0, 0]
+                known &= ~(measured < z.detach() - self.free_space_margin)
+        d_pm = (inner + outside / self.diag) * known.float()
         valid_f = valid.float()
         e_pm = (d_pm * valid_f).sum(1) / valid_f.sum(1).clamp_min(1.0)
         # mask -> points: nearest projected point (subset) for every mask sample
@@ -400,7 +429,8 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
         return fallback(SparseStatus.NO_VIEWS, 'no usable views', pts=pts0.numpy())
 
     gen = torch.Generator().manual_seed(int(cfg.seed))
-    batch = _Batch(views, cfg.truncation_aware)
+    free_space = cfg.free_space_margin if cfg.free_space else None
+    batch = _Batch(views, cfg.truncation_aware, free_space)
     use_floor = floor_height is not None and math.isfinite(float(floor_height)) and cfg.w_floor > 0
     use_height = height_range is not None and cfg.w_height > 0
     subset = torch.randperm(pts0.shape[0], generator=gen)[:min(cfg.point_samples, pts0.shape[0])]
@@ -541,7 +571,8 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
         # code_restarts best candidates of each pass are scored exactly
         # (docs/experiments/frodo_optim_history.md, "Screened code restarts")
         n_screen = int(cfg.restart_screen_views)
-        screen = _Batch(select_views(views, n_screen), cfg.truncation_aware) if 0 < n_screen < len(views) else None
+        screen = _Batch(select_views(views, n_screen), cfg.truncation_aware, free_space) \
+            if 0 < n_screen < len(views) else None
         keep = max(1, int(cfg.restart_screen_keep)) * int(cfg.code_restarts)
 
         evaluations = itertools.count()

@@ -39,7 +39,8 @@ class ViewMemory:
             if oid >= 0 and not owns(oid):
                 continue
             mask = labels == r['label']
-            view = view_from_mask(K, T_world_camera, mask, self.config.sparse.mask_samples, detected & ~mask, self.rng)
+            view = view_from_mask(K, T_world_camera, mask, self.config.sparse.mask_samples, detected & ~mask, self.rng,
+                                  depth_m)
             if view is None:
                 rejected += 1
                 continue

@@ -58,7 +58,8 @@ def _volume(prior, code, res=24):
 
 def test_dense_view_data(scene):
     v = scene['views'][0]
-    assert v.labels.shape == (64, 64) and v.rgb.shape == (64, 64, 3) and v.nbytes() < 20000
+    assert v.labels.shape == (64, 64) and v.rgb.shape == (64, 64, 3) and v.depth.shape == (64, 64)
+    assert v.nbytes() < 30000
     assert (v.labels == LABEL_OBJECT).mean() > 0.1 and v.depth_points.shape[1] == 3
     assert pyramid_levels(200, 200, 40, 400) == [2, 1, 0] and pyramid_levels(10, 10, 40, 400) == [0]
     assert dense_view_from_frame(np.eye(3), np.eye(4), np.zeros((5, 5), bool), None, None) is None
@@ -199,6 +200,75 @@ def test_foreground_probability_of_a_slab_and_its_thin_limit():
     thin = {r: foreground_probability(_slab_volume(r, 0.015), *pose, rays, cfg.ray_step, cfg.sharpness)
             for r in (32, 128)}
     assert (thin[32] < 0.95).all() and (thin[32] < thin[128]).all()
+
+
+def test_free_space_ray_ends_at_its_measured_surface():
+    """A ray known only up to a measured surface (`Rays.limit`, camera depth along a direction that is not unit
+    length, at scale 1 and 2) sees the slab behind that surface as nothing, and the slab in front of it whole."""
+    cfg = DenseConfig()
+    origin, d = torch.tensor([[[0.0, 0.0, 2.0]]]), torch.tensor([[[0.0, 0.5, -1.0]]])   # camera depth = height drop
+    ones = torch.ones(1, 1)
+    for scale, top in ((1.0, 1.8), (2.0, 1.6)):          # the slab |z| < 0.2 (normalised) reaches 0.2 s in the world
+        pose = (torch.eye(3), torch.zeros(3), torch.tensor(scale))
+        H = {limit: float(foreground_probability(_slab_volume(32, 0.2), *pose,
+                                                 Rays(origin, d, ones, ones, torch.full((1, 1), limit)),
+                                                 cfg.ray_step, cfg.sharpness)) for limit in (top - 0.1, top + 0.15)}
+        assert H[top - 0.1] < 0.01 and H[top + 0.15] > 0.99
+
+
+def _occluded_view(view, depth: float):
+    """The view with the lower half of its mask behind an undetected occluder at camera depth `depth`: labelled
+    background there, with that depth."""
+    labels, measured = view.labels.copy(), view.depth.copy()
+    rows = np.nonzero((labels == LABEL_OBJECT).any(axis=1))[0]
+    hidden = (labels == LABEL_OBJECT) & (np.arange(len(labels))[:, None] > (rows[0] + rows[-1]) / 2)
+    labels[hidden], measured[hidden] = 0, depth
+    return replace(view, labels=labels, depth=measured)
+
+
+def test_free_space_keeps_an_undetected_occluder_from_carving_the_object(prior, scene):
+    """With depth, mask pixels lost to an undetected occluder in front of the object (labelled background, their
+    depth nearer than the object) cost the true shape nothing more; without free space they do, as they carve
+    away what they hide. Off the mask the depth changes nothing: the object lies in front of the background."""
+    T = torch.as_tensor(scene['T'], dtype=torch.float32)
+    s = torch.linalg.norm(T[:3, 0])
+    volume = _volume(prior, scene['code'], 32)
+
+    def energy(views, free_space):
+        cfg = DenseConfig(free_space=free_space)
+        rays = make_rays(views, cfg, 1, torch.Generator().manual_seed(0))[0]
+        return float(dense_silhouette(volume, T[:3, :3] / s, T[:3, 3], s, rays, cfg.ray_step, cfg.sharpness,
+                                      cfg.mask_confidence))
+
+    clear = scene['views'][:4]
+    hidden = [_occluded_view(v, 1.0) for v in clear]
+    assert energy(hidden, False) > energy(clear, False) + 0.2
+    assert energy(hidden, True) < energy(clear, True) + 0.02
+    assert abs(energy(clear, True) - energy(clear, False)) < 1e-6
+
+
+def test_level_rays_know_pixels_off_the_mask_up_to_their_depth(scene):
+    """`_level_rays` with free space: off the mask, a pixel with depth d is known up to d - margin (another
+    detection's pixels too, which count then); without depth, background is known whole and another detection's
+    pixels not at all; mask pixels are whole rays."""
+    from frodo_optim.dense import _level_rays
+    from frodo_optim.photometric import LABEL_UNKNOWN
+    view = scene['views'][0]
+    labels, depth = view.labels.copy(), np.full(view.labels.shape, np.nan, np.float16)
+    labels[:8] = LABEL_UNKNOWN
+    depth[:4], depth[-4:] = 1.5, 3.0
+    view = replace(view, labels=labels, depth=depth)
+    S = len(labels)
+    uv, fg, weight, limit = _level_rays(view, 0, S * S, torch.Generator().manual_seed(0), 0.05)
+    cell = ((uv - torch.tensor(view.crop[:2])) / (view.crop[2] - view.crop[0]) * S).long()
+    row = cell[:, 1]
+    unknown_measured, unknown_blank = row < 4, (row >= 4) & (row < 8)
+    assert torch.allclose(limit[unknown_measured], torch.tensor(1.45)) and (weight[unknown_measured] == 1).all()
+    assert (weight[unknown_blank] == 0).all() and torch.isinf(limit[unknown_blank]).all()
+    off_mask = (row >= S - 4) & (fg == 0)
+    assert off_mask.any() and torch.allclose(limit[off_mask], torch.tensor(2.95))
+    assert torch.isinf(limit[fg > 0]).all()
+    assert torch.isinf(_level_rays(view, 0, 64, torch.Generator().manual_seed(0))[3]).all()   # free space off
 
 
 def test_clipped_and_skipped_silhouette_equals_reading_every_sample(prior, scene):

@@ -194,3 +194,38 @@ def test_depth_points_place_a_table_seen_from_one_side(prior):
 
     without, with_depth = centre_error(None), centre_error(with_depth_points(None, depth, 1024))
     assert with_depth < 0.08 and with_depth < 0.6 * without
+
+
+def test_free_space_keeps_an_undetected_occluder_from_carving_the_object(prior, chair_scene):
+    """With depth, the chair's points that project where an undetected occluder in front (a wall 1 m from the
+    camera across the lower half of the image) hides its lower half (labelled background there, the occluder's
+    depth nearer) cost the silhouette nothing; without free space they cost as points off the mask do. A view
+    without the occluder costs the same either way."""
+    from frodo_optim.sparse import _Batch
+    s, yaw, t = chair_scene['s'], chair_scene['yaw'], chair_scene['t']
+    T = pose_matrix(yaw, t, s)
+    pts = prior.decode_points(chair_scene['code'])[0].detach().numpy().astype(np.float64)
+    world = torch.as_tensor(pts @ T[:3, :3].T + T[:3, 3], dtype=torch.float32)
+    renderer = Renderer([RenderObject(chair_scene['mesh'].copy().apply_transform(T), label=1)])
+    K = intrinsics(W, H, 60.0)
+    centre = world.numpy().mean(0)
+    clear, hidden = [], []
+    for k in range(4):
+        a = 2 * np.pi * k / 4 + 0.3
+        Twc = look_at(centre + np.array([2.2 * np.cos(a), 2.2 * np.sin(a), 0.9]), centre)
+        out = renderer.render(K, Twc, W, H, shadows=False)
+        mask = out.labels == 1
+        rows = np.nonzero(mask.any(axis=1))[0]
+        occluder = np.broadcast_to(np.arange(H)[:, None] > (rows[0] + rows[-1]) / 2, mask.shape)
+        depth = np.where(occluder, 1.0, out.depth)
+        clear.append(view_from_mask(K, Twc, mask, 128, rng=np.random.default_rng(k), depth_m=out.depth))
+        hidden.append(view_from_mask(K, Twc, mask & ~occluder, 128, rng=np.random.default_rng(k), depth_m=depth))
+    subset = torch.arange(len(world))
+
+    def energy(views, margin):
+        return float(_Batch(views, True, margin).silhouette(world, subset))
+
+    assert hidden[0].depth.shape == (64, 64)
+    assert energy(hidden, None) > 3 * energy(clear, None)
+    assert energy(hidden, 0.05) < 1.5 * energy(clear, 0.05)
+    assert abs(energy(clear, 0.05) - energy(clear, None)) < 0.1 * energy(clear, None)
