@@ -404,8 +404,16 @@ def measure_row(bag: Path, run_dir: Path) -> dict:
             'objects': rows, 'eval': ev.get('overall', {})}
 
 
-def measure_table(results: list[dict]) -> str:
-    commit = git_commit(Path(__file__).parent) or 'unknown'
+RUN_COMMIT = 'commit.txt'     # in a measure run's folder: the commit that reconstructed it
+
+
+def has_results_of(run_dir: Path, commit: str) -> bool:
+    """Whether run_dir holds a reconstruction made at `commit` (results of another commit are not this one's)."""
+    stamp = run_dir / RUN_COMMIT
+    return (run_dir / 'objects.json').is_file() and stamp.is_file() and stamp.read_text().strip() == commit
+
+
+def measure_table(results: list[dict], commit: str) -> str:
     lines = [f'`python -m frodo_datasets.annotate measure` on {platform.node()} ({platform.machine()}, '
              f'{platform.python_implementation()} {platform.python_version()}), commit {commit}:', '',
              '| bag | frames | size (MB) | objects found | annotated object | centre error (cm) | box size found / annotated (m) | F1@5cm (%) | CD (cm) |',
@@ -464,7 +472,8 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser('measure', help='frodo reconstruct each bag, table of objects found and centre errors')
     p.add_argument('bags', nargs='+', type=Path)
     p.add_argument('--out', required=True, type=Path, help='run folders go to OUT/<bag stem>')
-    p.add_argument('--rerun', action='store_true', help='reconstruct again even when OUT/<stem> has results')
+    p.add_argument('--rerun', action='store_true',
+                   help='reconstruct again even when OUT/<stem> has results of this commit')
     p.add_argument('--readme', type=Path, help='replace the results block of this markdown file')
     args = parser.parse_args(argv)
     if args.command == 'fuse':
@@ -484,9 +493,10 @@ def main(argv: list[str] | None = None) -> int:
                   args.depth_tolerance, args.min_pixels, args.mesh_dir)
         return 0
     results = []
+    commit = git_commit(Path(__file__).parent) or 'unknown'
     for bag in args.bags:
         run_dir = args.out / bag.stem
-        if args.rerun or not (run_dir / 'objects.json').is_file():
+        if args.rerun or not has_results_of(run_dir, commit):
             cmd = [sys.executable, '-m', 'frodo_bringup.cli', 'reconstruct', str(bag), '--out', str(run_dir),
                    '--quiet', '--no-recording']
             print('$ ' + ' '.join(cmd[2:]), flush=True)
@@ -494,8 +504,9 @@ def main(argv: list[str] | None = None) -> int:
             if rc != 0:
                 print(f'frodo reconstruct failed on {bag} (exit {rc})', file=sys.stderr)
                 return 1
+            (run_dir / RUN_COMMIT).write_text(commit + '\n')
         results.append(measure_row(bag, run_dir))
-    text = measure_table(results)
+    text = measure_table(results, commit)
     print(text)
     if args.readme:
         replace_section(args.readme, text)

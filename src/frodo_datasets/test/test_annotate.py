@@ -83,3 +83,14 @@ def test_results_block_is_replaced(tmp_path):
     text = readme.read_text()
     assert text.count(annotate.RESULTS_BEGIN) == 1 and 'two' in text and 'one' not in text
     assert annotate.height_peaks(np.r_[np.zeros(50), np.full(30, 0.75), np.linspace(0, 1, 10)])[0][1] >= 50
+
+
+def test_measure_reuses_only_runs_of_the_same_commit(tmp_path):
+    """`annotate measure` reconstructs again when a run folder's results came from another commit, so the figures
+    it writes under a commit are that commit's."""
+    from frodo_datasets.annotate import RUN_COMMIT, has_results_of
+    assert not has_results_of(tmp_path, 'abc')
+    (tmp_path / 'objects.json').write_text('[]')
+    assert not has_results_of(tmp_path, 'abc')               # a run from before the commit was recorded
+    (tmp_path / RUN_COMMIT).write_text('abc\n')
+    assert has_results_of(tmp_path, 'abc') and not has_results_of(tmp_path, 'def')
