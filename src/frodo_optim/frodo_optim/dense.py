@@ -19,7 +19,8 @@ Per iteration:
      per view and level are drawn once (seeded). Unknown pixels (other detections, outside the image) are
      left out. With a registered depth image (`free_space`, beyond the paper) a pixel off the mask that
      measures a surface is known only in front of it: its ray ends `free_space_margin` before that depth
-     (`Rays.limit`), and other detections' pixels count up to their surface. The SDF along rays is read from the volume (trilinear), so the decoder runs once per grid
+     (`Rays.limit`), and other detections' pixels count up to their surface. The SDF along rays is read
+     from the volume (trilinear), so the decoder runs once per grid
      point, not once per ray sample (the paper's reason for the proxy volume: cost independent of views);
      rays are clipped to the surface's box and blocks of the volume outside the active band are not read
      (`surface_bounds`, `_read_volume`: those samples add log sig(zeta f) ~ 0);

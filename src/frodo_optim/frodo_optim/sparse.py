@@ -291,10 +291,11 @@ class _Batch:
         outside = (out.square().sum(-1) + 1e-6).sqrt() - 1e-3
         known = ~self.unknown(uv)
         if self.depth is not None:
-            with torch.no_grad():   # outside the crop the grid's border cell is read: a point there is far off anyway
+            with torch.no_grad():   # only inside the crop: beyond it nothing was measured for this view
                 measured = F.grid_sample(self.depth, g[:, None].detach(), mode='nearest', padding_mode='border',
                                          align_corners=False)[:, 0, 0]
-                known &= ~(measured < z.detach() - self.free_space_margin)
+                in_crop = (g.detach().abs() <= 1).all(-1)
+                known &= ~(in_crop & (measured < z.detach() - self.free_space_margin))
         d_pm = (inner + outside / self.diag) * known.float()
         valid_f = valid.float()
         e_pm = (d_pm * valid_f).sum(1) / valid_f.sum(1).clamp_min(1.0)
