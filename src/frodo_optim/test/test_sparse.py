@@ -198,9 +198,10 @@ def test_depth_points_place_a_table_seen_from_one_side(prior):
 
 def test_free_space_keeps_an_undetected_occluder_from_carving_the_object(prior, chair_scene):
     """With depth, the chair's points that project where an undetected occluder in front (a wall 1 m from the
-    camera across the lower half of the image) hides its lower half (labelled background there, the occluder's
+    camera across the lower part of the image) hides its lower third (labelled background there, the occluder's
     depth nearer) cost the silhouette nothing; without free space they cost as points off the mask do. A view
-    without the occluder costs the same either way."""
+    without the occluder costs the same either way. (Depth is kept on the view's crop only, which reaches 0.6
+    of the visible box beyond it: here it covers the hidden third.)"""
     from frodo_optim.sparse import _Batch
     s, yaw, t = chair_scene['s'], chair_scene['yaw'], chair_scene['t']
     T = pose_matrix(yaw, t, s)
@@ -216,7 +217,7 @@ def test_free_space_keeps_an_undetected_occluder_from_carving_the_object(prior, 
         out = renderer.render(K, Twc, W, H, shadows=False)
         mask = out.labels == 1
         rows = np.nonzero(mask.any(axis=1))[0]
-        occluder = np.broadcast_to(np.arange(H)[:, None] > (rows[0] + rows[-1]) / 2, mask.shape)
+        occluder = np.broadcast_to(np.arange(H)[:, None] > rows[0] + 2 / 3 * (rows[-1] - rows[0]), mask.shape)
         depth = np.where(occluder, 1.0, out.depth)
         clear.append(view_from_mask(K, Twc, mask, 128, rng=np.random.default_rng(k), depth_m=out.depth))
         hidden.append(view_from_mask(K, Twc, mask & ~occluder, 128, rng=np.random.default_rng(k), depth_m=depth))
@@ -226,6 +227,7 @@ def test_free_space_keeps_an_undetected_occluder_from_carving_the_object(prior, 
         return float(_Batch(views, True, margin).silhouette(world, subset))
 
     assert hidden[0].depth.shape == (64, 64)
-    assert energy(hidden, None) > 3 * energy(clear, None)
-    assert energy(hidden, 0.05) < 1.5 * energy(clear, 0.05)
-    assert abs(energy(clear, 0.05) - energy(clear, None)) < 0.1 * energy(clear, None)
+    base, carved = energy(clear, None), energy(hidden, None)
+    assert carved > 1.5 * base
+    assert energy(hidden, 0.05) < base + 0.4 * (carved - base)      # most of what the occluder added is gone
+    assert abs(energy(clear, 0.05) - base) < 0.1 * base
