@@ -23,6 +23,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from frodo_common.geometry import backproject_pixels
+
 LABEL_BACKGROUND, LABEL_OBJECT, LABEL_UNKNOWN = 0, 1, 2
 
 
@@ -137,9 +139,8 @@ def dense_view_from_frame(K, T_world_camera, mask: np.ndarray, unknown: np.ndarr
         if ok.sum() >= 4:
             rng = rng if rng is not None else np.random.default_rng(0)
             pick = rng.choice(np.flatnonzero(ok), size=min(depth_points, int(ok.sum())), replace=False)
-            uv1 = np.stack([xs[pick], ys[pick], np.ones(len(pick))], 1).astype(np.float64)
-            cam = (np.linalg.solve(K, uv1.T) * d[pick]).T
-            pts = (cam @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
+            pts = backproject_pixels(K, T, xs[pick].astype(np.float64), ys[pick].astype(np.float64),
+                                     d[pick]).astype(np.float32)
     return DenseView(K, T, tuple(float(c) for c in crop), lab, colour, (bw, bh), pts, depth)
 
 
