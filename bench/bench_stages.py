@@ -9,7 +9,8 @@ with the estimate of every stage kept as it ends. The final map is matched to th
 contract's protocol (`frodo_common.evaluation`); for each matched object the table gives the horizontal
 distance (cm) between the centre of the ground-truth mesh's bounding box and the association box's centre
 ("assoc", with its vertical offset "dz") and each stage mesh's bounding-box centre ("c"), and each stage's
-F1@5cm and COMP@5cm against that ground-truth object alone. The bag line counts the ground-truth objects
+F1@5cm and COMP@5cm against that ground-truth object alone (`--json` also keeps each stage's own words, e.g. the
+sparse start that won). The bag line counts the ground-truth objects
 found, false positives and the classes missed. The last lines pool every bag: per class and stage the mean
 F1, mean COMP and the median centre error. Used for issue 27 (docs/experiments/frodo_association_history.md,
 "Starved views, and where realwalk-tune loses its objects").
@@ -122,10 +123,12 @@ def score_bag(bag: str, config: PipelineConfig | None, oracle: bool = False,
     draw every ground-truth object into this folder (`draw_objects`)."""
     gt = load_ground_truth(bag)
     meshes: dict[int, dict[str, object]] = {}
+    details: dict[int, dict[str, str]] = {}
 
     def keep(stage) -> None:
         if stage.estimate is not None:
             meshes.setdefault(stage.object_id, {})[stage.stage] = stage.estimate.mesh_world.copy()
+        details.setdefault(stage.object_id, {})[stage.stage] = stage.detail
 
     t0 = time.perf_counter()
     result = reconstruct(bag, config, on_stage=keep)
@@ -148,7 +151,8 @@ def score_bag(bag: str, config: PipelineConfig | None, oracle: bool = False,
             row[stage] = {'centre_cm': 100 * float(np.linalg.norm(mesh.bounds.mean(0)[:2] - centre[:2])),
                           'f1': scored[0].f1 if scored else 0.0, 'comp': scored[0].comp if scored else 0.0,
                           'top_cm': 100 * float(mesh.bounds[1, 2] - g.mesh.bounds[1, 2]),
-                          'bottom_cm': 100 * float(mesh.bounds[0, 2] - g.mesh.bounds[0, 2])}
+                          'bottom_cm': 100 * float(mesh.bounds[0, 2] - g.mesh.bounds[0, 2]),
+                          'detail': details.get(pair.pred_id, {}).get(stage, '')}
         if oracle:
             row['oracle'] = oracle_f1(result.estimates[pair.pred_id].mesh_world, g.mesh)
         rows.append(row)

@@ -256,7 +256,8 @@ class ObjectReconstructor:
                                   'sparse', mesh_world, dict(fused.timings, sparse_s=seconds), reason, stamp)
         self.estimates[oid] = estimate
         e0, e1 = result.initial_energies.get('total', np.nan), result.energies.get('total', np.nan)
-        detail = f'{result.views} views, {result.iterations} it, E {e0:.3f}->{e1:.3f}, {result.seconds:.2f}s'
+        detail = (f'{result.views} views, {result.iterations} it, E {e0:.3f}->{e1:.3f}, {result.seconds:.2f}s, '
+                  f'start: {result.placement}')
         return StageOutcome(oid, 'sparse', reason, estimate, detail, seconds,
                             energies=_energies(result.initial_energies, result.energies),
                             iterations=result.total_iterations, views=result.views), result

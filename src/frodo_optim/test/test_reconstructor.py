@@ -79,6 +79,9 @@ def test_all_three_stages_run_and_each_ends_with_a_reason(prior, two_chairs):
     out = rec.reconstruct(chair_input(two_chairs), memory_of(frames, K, cfg), Scene(), on_stage=seen.append)
     assert [s.stage for s in out.stages] == ['fused', 'sparse', 'dense'] and seen == out.stages
     assert out.stages[0].reason is StageReason.IN_PROGRESS and out.stages[1].reason is StageReason.IN_PROGRESS
+    # the sparse stage names the start that won (the input box, a placement hypothesis, a training code)
+    assert out.stages[1].detail.endswith(f'start: {rec.sparse_results[1][1].placement}')
+    assert rec.sparse_results[1][1].placement
     final = rec.estimates[1]
     assert out.final.reason in (StageReason.ALL_STAGES_DONE, StageReason.DENSE_NOT_BETTER)
     assert final.stage_reason == out.final.reason and final.stage == ('dense' if out.final.reason
