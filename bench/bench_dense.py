@@ -5,7 +5,9 @@
     .venv/bin/python bench/bench_dense.py opacity [--resolutions 32,48,64,128] [--shapes 6]
 
 `timing`: one object (a prior chair rendered from N cameras on a circle, colour + masks), seconds per dense
-iteration and for the whole stage, plus the sparse stage for reference.
+iteration and for the whole stage, plus the sparse stage for reference; each configuration once from colour and
+masks alone (`dense`) and once with the rendered depth image as well (`dense_depth`: the depth points of Eg and
+the free space of the silhouette, what an RGB-D bag costs).
 
 `opacity`: how opaque the dense silhouette (paper Eq. 8, `dense.foreground_probability`) renders the prior's
 own training shapes from the SDF volume of each resolution: rays from 20-50 degrees above the horizontal (a
@@ -77,28 +79,31 @@ def timing(args) -> None:
     W, H = 320, 240
     K = intrinsics(W, H, 60.0)
     centre = world.bounds.mean(0)
-    dense_views, sparse_views = [], []
+    dense_views, depth_views, sparse_views = [], [], []
     for k in range(args.views):
         a = 2 * np.pi * k / args.views
         Twc = look_at(centre + np.array([2.2 * np.cos(a), 2.2 * np.sin(a), 0.9]), centre)
         out = renderer.render(K, Twc, W, H, shadows=False)
         dense_views.append(dense_view_from_frame(K, Twc, out.labels == 1, None, out.rgb))
+        depth_views.append(dense_view_from_frame(K, Twc, out.labels == 1, None, out.rgb, out.depth))
         sparse_views.append(view_from_mask(K, Twc, out.labels == 1, 96))
     other = prior.training_codes[chairs[7]].cpu().numpy()
     code0 = (0.5 * code + 0.5 * other).astype(np.float32)
     T0 = pose_matrix(0.8, T[:3, 3] + [0.04, -0.03, 0.0], 0.52)
-    rows = []
+    rows: dict[str, list] = {'dense': [], 'dense_depth': []}
     for config in args.configs:
         cfg = DenseConfig(**{'max_views': args.views, 'iterations': args.iterations, 'max_seconds': 1e9,
                              **(json.loads(config) if config else {})})
-        res = refine_dense(prior, code0, T0, dense_views, config=cfg)
-        rows.append({'config': config or 'default', 'seconds_per_iteration': round(res.seconds_per_iteration, 3),
-                     'stage_seconds': round(res.seconds, 2), 'iterations': res.iterations, 'improved': res.improved})
+        for key, views in (('dense', dense_views), ('dense_depth', depth_views)):
+            res = refine_dense(prior, code0, T0, views, config=cfg)
+            rows[key].append({'config': config or 'default', 'seconds_per_iteration': round(res.seconds_per_iteration, 3),
+                              'stage_seconds': round(res.seconds, 2), 'iterations': res.iterations,
+                              'improved': res.improved})
     lo, hi = world.bounds
     box = ((lo + hi) / 2, hi - lo, 0.7)
     sp = refine(prior, code0, box, sparse_views, config=SparseConfig(max_views=args.views))
     print(json.dumps({'views': args.views, 'machine': _machine(torch.get_num_threads()), 'device': str(prior.device),
-                      'dense': rows, 'sparse_seconds': round(sp.seconds, 2)}, indent=1))
+                      **rows, 'sparse_seconds': round(sp.seconds, 2)}, indent=1))
 
 
 # ------------------------------------------------------------------ per-stage accuracy

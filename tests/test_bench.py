@@ -35,6 +35,12 @@ def test_sections_return_figures_and_plots_are_written(tmp_path):
     assert page.startswith('# Performance') and doc['machine']['cpu'] in page
     assert '| 35 | 60.0 | 1.2x |' in page                 # the paper's 70 ms per sparse iteration against 60 ms
     assert f"| 2 | {row['detections_per_frame']} |" in page and '![optimiser.png](figures/optimiser.png)' in page
+    assert 'with depth images' not in page
+    dense = {'rows': [{'views': 35, 'ms_per_iteration': 80.0, 'ms_per_iteration_depth': 95.0}]}
+    page = bench.markdown_page(doc | {'dense': dense}, 'figures')     # an RGB-D bag's cost in a column of its own
+    assert '| views | ms per iteration | paper (GPU) / this | with depth images: ms |' in page
+    assert '| 35 | 80.0 | 62.0x | 95.0 |' in page
+    assert '35 views 80.0 ms (95.0 with depth)' in bench.summary(doc | {'dense': dense})
 
 
 def test_frodo_bench_writes_json(tmp_path, capsys):
@@ -139,3 +145,14 @@ def test_before_section_runs_a_commits_code_and_this_checkouts_on_one_bag(tmp_pa
     assert '## Before the speed work (issue 28)' in bench.markdown_page(doc, 'figures')
     assert bench.before_and_now(bag, tmp_path / 'none', revision='0' * 40) == {
         'skipped': 'commit 0000000000 is not in a git checkout here (run from a full clone of the repository)'}
+
+
+def test_dense_bench_timing_measures_colour_alone_and_with_depth(capsys):
+    """`bench_dense.py timing`: one row per configuration from colour and masks, and one with depth images."""
+    bench_dense = _bench_dense()
+    bench_dense.main(['timing', '--views', '2', '--iterations', '1'])
+    out = capsys.readouterr().out
+    result = json.loads(out[out.index('{'):])
+    assert [len(result[k]) for k in ('dense', 'dense_depth')] == [1, 1]
+    assert all(result[k][0]['iterations'] == 1 and result[k][0]['seconds_per_iteration'] > 0
+               for k in ('dense', 'dense_depth'))

@@ -281,7 +281,8 @@ def optimiser_sweep(script: str, views: list[int], iterations: int, repeats: int
 
 
 def _timing_sweep(script: str, views: list[int], iterations: int, device: str) -> dict[str, Any]:
-    """`python bench/<script>.py timing --views N --iterations I` for each N; its JSON's first dense row."""
+    """`python bench/<script>.py timing --views N --iterations I` for each N; its JSON's first dense row (and
+    first `dense_depth` row, with depth images, where the script gives one)."""
     import torch
     rows = []
     for n in views:
@@ -293,9 +294,12 @@ def _timing_sweep(script: str, views: list[int], iterations: int, device: str) -
             raise RuntimeError(f'{script}.py timing --views {n} failed: {proc.stderr.strip()[-500:]}')
         result = json.loads(proc.stdout[proc.stdout.index('{'):])
         dense = result['dense'][0]
-        rows.append({'views': n, 'iterations': dense['iterations'],
-                     'ms_per_iteration': round(1e3 * dense['seconds_per_iteration'], 1),
-                     'stage_s': dense['stage_seconds'], 'sparse_stage_s': result.get('sparse_seconds')})
+        row = {'views': n, 'iterations': dense['iterations'],
+               'ms_per_iteration': round(1e3 * dense['seconds_per_iteration'], 1),
+               'stage_s': dense['stage_seconds'], 'sparse_stage_s': result.get('sparse_seconds')}
+        if result.get('dense_depth'):        # the same object with its depth images (an RGB-D bag)
+            row['ms_per_iteration_depth'] = round(1e3 * result['dense_depth'][0]['seconds_per_iteration'], 1)
+        rows.append(row)
     return {'script': f'bench/{script}.py timing', 'rows': rows}
 
 
@@ -640,7 +644,9 @@ def summary(doc: dict[str, Any]) -> str:
     for key in ('sparse', 'dense'):
         sec = doc.get(key, {})
         if 'rows' in sec:
-            per = ', '.join(f"{r['views']} views {r['ms_per_iteration']:.1f} ms" for r in sec['rows'])
+            per = ', '.join(f"{r['views']} views {r['ms_per_iteration']:.1f} ms"
+                            + (f" ({r['ms_per_iteration_depth']:.1f} with depth)" if 'ms_per_iteration_depth' in r
+                               else '') for r in sec['rows'])
             lines.append(f"{key} per iteration: {per} (paper: {PAPER[f'{key}_s_per_iteration'] * 1e3:.0f} ms)")
         elif sec:
             lines.append(f"{key}: {sec.get('skipped') or sec.get('error')}")
@@ -738,10 +744,13 @@ def markdown_page(doc: dict[str, Any], plots_dir: str) -> str:
         sec = doc.get(key, {})
         if 'rows' in sec:
             paper = PAPER[f'{key}_s_per_iteration'] * 1e3
+            rows = [row for row in sec['rows'] if row.get('ms_per_iteration')]
+            depth = all(row.get('ms_per_iteration_depth') for row in rows)
             lines += [f'## {key.capitalize()} stage per iteration (one object, `bench/bench_{key}.py timing`)', '',
-                      '| views | ms per iteration | paper (GPU) / this |', '|---|---|---|']
+                      '| views | ms per iteration | paper (GPU) / this |' + (' with depth images: ms |' if depth else ''),
+                      '|---|---|---|' + ('---|' if depth else '')]
             lines += [f"| {row['views']} | {row['ms_per_iteration']:.1f} | {paper / row['ms_per_iteration']:.1f}x |"
-                      for row in sec['rows'] if row.get('ms_per_iteration')]
+                      + (f" {row['ms_per_iteration_depth']:.1f} |" if depth else '') for row in rows]
             lines += ['', f'Paper: {paper:.0f} ms per iteration (supplement, "Speed comparison"; hardware not '
                       'stated there).', '']
     a = doc.get('association', {})
