@@ -96,7 +96,8 @@ def timing(args) -> None:
                              **(json.loads(config) if config else {})})
         for key, views in (('dense', dense_views), ('dense_depth', depth_views)):
             res = refine_dense(prior, code0, T0, views, config=cfg)
-            rows[key].append({'config': config or 'default', 'seconds_per_iteration': round(res.seconds_per_iteration, 3),
+            rows[key].append({'config': config or 'default',
+                              'seconds_per_iteration': round(res.seconds_per_iteration, 3),
                               'stage_seconds': round(res.seconds, 2), 'iterations': res.iterations,
                               'improved': res.improved})
     lo, hi = world.bounds

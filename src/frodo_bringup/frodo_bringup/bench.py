@@ -745,10 +745,10 @@ def markdown_page(doc: dict[str, Any], plots_dir: str) -> str:
         if 'rows' in sec:
             paper = PAPER[f'{key}_s_per_iteration'] * 1e3
             rows = [row for row in sec['rows'] if row.get('ms_per_iteration')]
-            depth = all(row.get('ms_per_iteration_depth') for row in rows)
+            depth = bool(rows) and all(row.get('ms_per_iteration_depth') for row in rows)
+            header = '| views | ms per iteration | paper (GPU) / this |' + (' with depth images: ms |' if depth else '')
             lines += [f'## {key.capitalize()} stage per iteration (one object, `bench/bench_{key}.py timing`)', '',
-                      '| views | ms per iteration | paper (GPU) / this |' + (' with depth images: ms |' if depth else ''),
-                      '|---|---|---|' + ('---|' if depth else '')]
+                      header, '|---|---|---|' + ('---|' if depth else '')]
             lines += [f"| {row['views']} | {row['ms_per_iteration']:.1f} | {paper / row['ms_per_iteration']:.1f}x |"
                       + (f" {row['ms_per_iteration_depth']:.1f} |" if depth else '') for row in rows]
             lines += ['', f'Paper: {paper:.0f} ms per iteration (supplement, "Speed comparison"; hardware not '
