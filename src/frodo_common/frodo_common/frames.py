@@ -12,3 +12,13 @@ def depth_to_metres(depth: np.ndarray) -> np.ndarray:
         d /= 1000.0
     d[~(d > 0)] = np.nan
     return d
+
+
+MIN_DEPTH = 0.05    # metres: nearer readings are sensor noise (a camera sees nothing this close)
+
+
+def usable_depth(depth_m: np.ndarray) -> np.ndarray:
+    """Registered depth in metres (H, W) as float32 with NaN wherever there is no usable reading (none, NaN,
+    or nearer than MIN_DEPTH)."""
+    d = np.asarray(depth_m, dtype=np.float32)
+    return np.where(np.isfinite(d) & (d > MIN_DEPTH), d, np.nan).astype(np.float32)

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from frodo_common.frames import usable_depth
 from frodo_common.geometry import backproject_pixels
 
 LABEL_BACKGROUND, LABEL_OBJECT, LABEL_UNKNOWN = 0, 1, 2
@@ -131,11 +132,10 @@ def dense_view_from_frame(K, T_world_camera, mask: np.ndarray, unknown: np.ndarr
         colour = _resample(np.asarray(rgb, dtype=np.uint8)[..., :3], wx0, wy0, side, size, 'area')
     pts = depth = None
     if depth_m is not None and np.asarray(depth_m).shape == mask.shape:
-        full = np.asarray(depth_m, dtype=np.float32)
-        depth = _resample(np.where(np.isfinite(full) & (full > 0.05), full, np.nan), wx0, wy0, side, size,
-                          'nearest').astype(np.float16)
-        d = np.asarray(depth_m, dtype=np.float64)[ys, xs]
-        ok = np.isfinite(d) & (d > 0.05)
+        usable = usable_depth(depth_m)
+        depth = _resample(usable, wx0, wy0, side, size, 'nearest').astype(np.float16)
+        d = usable[ys, xs].astype(np.float64)
+        ok = np.isfinite(d)
         if ok.sum() >= 4:
             rng = rng if rng is not None else np.random.default_rng(0)
             pick = rng.choice(np.flatnonzero(ok), size=min(depth_points, int(ok.sum())), replace=False)

@@ -59,6 +59,7 @@ import torch
 import torch.nn.functional as F
 from scipy.ndimage import distance_transform_edt
 
+from frodo_common.frames import usable_depth
 from frodo_common.geometry import Box3D
 from frodo_optim.adam import Adam
 from frodo_optim.photometric import checked_view_inputs, photometric_energy
@@ -218,9 +219,8 @@ def view_from_mask(K, T_world_camera, mask: np.ndarray, n_samples: int = 128, un
         other[ii, jj] = other_sub[iv[ii] - cy0, iu[jj] - cx0]
     depth = None
     if depth_m is not None and np.shape(depth_m) == mask.shape:
-        depth = np.full((DT_SIZE, DT_SIZE), np.nan, np.float32)
-        depth[ii, jj] = np.asarray(depth_m, dtype=np.float32)[iv[ii], iu[jj]]
-        depth = np.where(np.isfinite(depth) & (depth > 0.05), depth, np.nan).astype(np.float16)
+        depth = np.full((DT_SIZE, DT_SIZE), np.nan, np.float16)
+        depth[ii, jj] = usable_depth(np.asarray(depth_m)[iv[ii], iu[jj]])
     return View(K, T, mask_uv, dt.astype(np.float16), tuple(float(c) for c in crop), diag, (int(w), int(h)), other,
                 depth)
 
