@@ -32,6 +32,7 @@ class OptimConfig:
     dense_rerun_growth: float = 1.25
     views_stored: int = 64
     crop_size: int = 96
+    facing_max_gap: float = 0.3
     sparse: SparseConfig = field(default_factory=SparseConfig)
     dense: DenseConfig = field(default_factory=DenseConfig)
 
@@ -95,6 +96,11 @@ _TABLE: tuple[tuple[str, tuple[str, ...], str], ...] = (
      'support.py); 0 disables.'),
     ('support_w_height', ('sparse.w_height', 'dense.w_height'), 'Weight of the class height prior E_size in the '
      'sparse and dense stages (beyond the paper: height inside Category.height_range; support.py); 0 disables.'),
+    ('support_w_facing', ('sparse.w_facing', 'dense.w_facing'), 'Weight of the facing prior E_facing in the sparse '
+     'and dense stages (beyond the paper: a chair whose box is within facing_max_gap of a table\'s faces that table; '
+     'it breaks the tie between facing it and turning away when the table hides the seat; support.py); 0 disables.'),
+    ('facing_max_gap', ('facing_max_gap',), 'Metres between the footprints of a chair\'s and a table\'s association '
+     'boxes within which the chair is taken to stand at the table (E_facing).'),
     ('dense_enabled', ('dense_enabled',), 'Run the dense stage (Sec. 5.3 Dense Optimization: SDF decoder, code + '
      '7-DoF pose) after a successful sparse stage.'),
     ('dense_iterations', ('dense.iterations',), 'Adam iterations of the dense stage per object and pass.'),

@@ -94,6 +94,7 @@ class DenseConfig:
     w_floor: float = 0.05              # E_floor (support.py); needs refine_dense(..., floor_height=h)
     floor_tolerance: float = 0.05      # metres
     w_height: float = 1.0              # E_size (support.py); needs refine_dense(..., height_range=(lo, hi))
+    w_facing: float = 0.05             # E_facing (support.py); needs refine_dense(..., facing=direction)
     geometry_truncation: float = 0.1   # metres (Eg, Ed)
     photometric_neighbours: int = 2
     huber_delta: float = 0.1
@@ -438,7 +439,8 @@ def refine_dense_starts(prior, code, T_world_object: np.ndarray, views: list[Den
                         slam_points: np.ndarray | None = None, box=None, config: DenseConfig | None = None,
                         should_stop=None, floor_height: float | None = None,
                         height_range: tuple[float, float] | None = None,
-                        alternatives: Sequence[tuple] = (), max_starts: int = 1) -> tuple[DenseResult, int]:
+                        alternatives: Sequence[tuple] = (), max_starts: int = 1,
+                        facing: np.ndarray | None = None) -> tuple[DenseResult, int]:
     """The dense stage from the sparse result (code, T_world_object) and from up to max_starts - 1 further starts,
     the (code, T_world_object, ...) of `alternatives` (`SparseResult.alternatives`; beyond the paper); returns
     (the result with the lowest check energy, its start index: 0 = the sparse result).
@@ -458,8 +460,8 @@ def refine_dense_starts(prior, code, T_world_object: np.ndarray, views: list[Den
     cfg = config or DenseConfig()
     candidates = [(code, T_world_object)] + [tuple(a[:2]) for a in alternatives][:max(0, int(max_starts) - 1)]
     index = distinct_starts(prior, candidates, float(cfg.start_separation))
-    runs = [_dense_run(prior, *candidates[i], views, slam_points, box, cfg, should_stop, floor_height, height_range)
-            for i in index]
+    runs = [_dense_run(prior, *candidates[i], views, slam_points, box, cfg, should_stop, floor_height, height_range,
+                       facing) for i in index]
     screen = int(cfg.screen_iterations)
     screening = len(runs) > 1 and 0 < screen < int(cfg.iterations)
     energies: list[list[float]] = [[] for _ in runs]
@@ -514,18 +516,19 @@ def _check(r: DenseResult) -> float:
 
 def refine_dense(prior, code, T_world_object: np.ndarray, views: list[DenseView], slam_points: np.ndarray | None = None,
                  box=None, config: DenseConfig | None = None, should_stop=None, floor_height: float | None = None,
-                 height_range: tuple[float, float] | None = None) -> DenseResult:
+                 height_range: tuple[float, float] | None = None, facing: np.ndarray | None = None) -> DenseResult:
     """Dense code + 7-DoF pose refinement of one object from its sparse estimate (paper Sec. 5.3).
 
     prior: `ShapePrior` (decoder.sdf, sdf_numpy, training_codes); code (C,), T_world_object (4, 4) similarity:
     the sparse result; views: `DenseView`s (at most config.max_views, spread evenly); slam_points (N, 3) world
     landmarks or None; box (centre, size, yaw) to select landmarks (None: all landmarks within the object's
     cube). should_stop: optional callable polled every iteration (a stopping node ends the stage at once,
-    keeping the best state so far). floor_height (world z) / height_range (m): the support priors E_floor / E_size
-    (`support.py`, weights w_floor / w_height); None: off. Never raises on bad input: returns the input with improved=False and a reason.
+    keeping the best state so far). floor_height (world z) / height_range (m) / facing (unit horizontal (2,)):
+    the support priors E_floor / E_size / E_facing (`support.py`, weights w_floor / w_height / w_facing); None:
+    off. Never raises on bad input: returns the input with improved=False and a reason.
     """
     return _finish(_dense_run(prior, code, T_world_object, views, slam_points, box, config, should_stop, floor_height,
-                              height_range))
+                              height_range, facing))
 
 
 def _finish(run: Generator[float, bool | None, DenseResult]) -> DenseResult:
@@ -539,7 +542,8 @@ def _finish(run: Generator[float, bool | None, DenseResult]) -> DenseResult:
 
 def _dense_run(prior, code, T_world_object: np.ndarray, views: list[DenseView], slam_points: np.ndarray | None,
                box, config: DenseConfig | None, should_stop, floor_height: float | None,
-               height_range: tuple[float, float] | None) -> Generator[float, bool | None, DenseResult]:
+               height_range: tuple[float, float] | None,
+               facing: np.ndarray | None = None) -> Generator[float, bool | None, DenseResult]:
     """`refine_dense` as a generator, so that several starts can run in turns (`refine_dense_starts`): yields each
     iteration's check energy before its step and ends there with the result so far when sent True (SCREENED_OUT);
     returns the DenseResult. Its clock (time limit, seconds) counts only the time it runs."""
@@ -584,6 +588,7 @@ def _dense_run(prior, code, T_world_object: np.ndarray, views: list[DenseView], 
     mu, sigma = (x.to(dev) for x in code_statistics(prior.training_codes))
     use_floor = floor_height is not None and math.isfinite(float(floor_height)) and cfg.w_floor > 0
     use_height = height_range is not None and cfg.w_height > 0
+    use_facing = facing is not None and np.isfinite(facing).all() and cfg.w_facing > 0
     grid_xyz = torch.as_tensor(grid_points(Rg).reshape(-1, 3), device=dev)
     cell = 2.0 / (Rg - 1)
 
@@ -657,8 +662,11 @@ def _dense_run(prior, code, T_world_object: np.ndarray, views: list[DenseView], 
                 terms['floor'] = support.floor_energy(world_ends[:k], floor_height, cfg.floor_tolerance)
             if use_height:
                 terms['height'] = support.height_energy(world_ends, height_range)
+        if use_facing:   # beyond the paper: a chair at a table faces it (support.py); front = the object's +x
+            terms['facing'] = support.facing_energy(R[:2, 0], facing)
         weights = {'silhouette': cfg.w_silhouette, 'photometric': cfg.w_photometric, 'geometry': cfg.w_geometry,
-                   'depth': cfg.w_depth, 'code': cfg.w_code, 'floor': cfg.w_floor, 'height': cfg.w_height}
+                   'depth': cfg.w_depth, 'code': cfg.w_code, 'floor': cfg.w_floor, 'height': cfg.w_height,
+                   'facing': cfg.w_facing}
         total = sum(weights[k] * v for k, v in terms.items())
         with torch.no_grad():   # the check energy: same terms, silhouette on the fixed finest-level rays
             sil_check = terms['silhouette'] if rays is check_rays else dense_silhouette(

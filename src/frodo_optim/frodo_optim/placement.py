@@ -10,8 +10,10 @@ with its exact energy next to the input box's own candidates (so the input place
 Hypotheses (centre, scale, yaw):
 
 - centre: the input box centre; the least-squares intersection of the rays through the detection boxes'
-  centres (robust: Huber-reweighted, views whose detection touches the image border left out); and points
-  on the mean viewing direction through it (every 15 cm up to +-60 cm: depth is the weakly constrained
+  centres (robust: Huber-reweighted, views whose detection touches the image border left out), or where the
+  rays do not cross (a camera turning in place) the median of the landmarks in the detections' visual hull
+  near the box (`landmark_centre`: a point of the visible surface, measured where a depth image comes); and
+  points on the mean viewing direction through it (every 15 cm up to +-60 cm: depth is the weakly constrained
   direction of a walk, and an association box placed from one side can be decimetres off along it);
 - scale: per centre and yaw, the median over views of observed / predicted detection-box diagonal (the
   projected size is nearly linear in the scale at a fixed centre; one fixed-point refinement), times
@@ -117,6 +119,16 @@ def ray_centre(views, boxes: np.ndarray, border: np.ndarray, huber: float = 0.1)
     return centre if in_front.mean() > 0.5 else None
 
 
+def landmark_centre(hull: np.ndarray, centre, reach: float, min_points: int = 10) -> np.ndarray | None:
+    """The median (3,) of the visual-hull landmarks (`on_silhouettes`) within `reach` metres (horizontally) of the
+    input box centre, or None with fewer than `min_points`: a point on the object's visible surface. Where the
+    rays through the detections are nearly parallel (a walk that turns in place; `ray_centre` None) it is the
+    only anchor along the view besides the box, and with a depth image it is measured, not inferred."""
+    p = np.asarray(hull, dtype=np.float64).reshape(-1, 3)
+    p = p[np.linalg.norm(p[:, :2] - np.asarray(centre, dtype=np.float64)[:2], axis=1) < reach]
+    return np.median(p, axis=0) if len(p) >= min_points else None
+
+
 def in_box(points: np.ndarray, center, size, yaw: float, margin: float = 0.0, floor_gap: float | None = None) -> np.ndarray:
     """(N,) bool: points (N, 3) inside the upright box grown by `margin` metres (floor_gap: the bottom is raised by
     this instead of lowered by the margin)."""
@@ -182,7 +194,8 @@ def search(points_norm: np.ndarray, box, views, batch, slam_points: np.ndarray |
            crop_margin: float, w_silhouette: float, w_geometry: float, truncation: float = 0.3, keep: int = 6,
            starts: int = 16, steps: int = 25, point_samples: int = 128, landmark_samples: int = 128,
            seed: int = 0, floor_height: float | None = None, w_floor: float = 0.0, floor_tolerance: float = 0.05,
-           height_range: tuple[float, float] | None = None, w_height: float = 0.0) -> list[Hypothesis]:
+           height_range: tuple[float, float] | None = None, w_height: float = 0.0,
+           facing: np.ndarray | None = None, w_facing: float = 0.0) -> list[Hypothesis]:
     """Placement hypotheses of one object, best first (at most `keep`; empty when nothing scores finite).
 
     Every (centre, scale, yaw) of the grid in the module docstring is scored at once; the `starts` best
@@ -192,8 +205,8 @@ def search(points_norm: np.ndarray, box, views, batch, slam_points: np.ndarray |
 
     points_norm (P, 3): the decoded shape (normalised frame); box (centre, size, yaw): the input box;
     views: the sparse stage's `View`s and batch: their `sparse._Batch`; slam_points (N, 3) world landmarks or
-    None; yaws (Y,): yaw candidates. floor_height / height_range (and their weights): the support priors of
-    `support.py` (E_floor, E_size) added to the score, as in the sparse energy; None: off.
+    None; yaws (Y,): yaw candidates. floor_height / height_range / facing (and their weights): the support priors
+    of `support.py` (E_floor, E_size, E_facing) added to the score, as in the sparse energy; None: off.
     """
     rng = np.random.default_rng(seed)
     pts = np.asarray(points_norm, dtype=np.float64)
@@ -206,18 +219,25 @@ def search(points_norm: np.ndarray, box, views, batch, slam_points: np.ndarray |
     boxes_obs, border = detection_boxes(views, crop_margin)
 
     centres, names = [centre_b], ['input box']
-    ray = ray_centre(views, boxes_obs, border)
-    if ray is not None and np.linalg.norm(ray - centre_b) < 3.0 * max(float(size_b.max()), 0.5):
-        cams = np.array([v.T_world_camera[:3, 3] for v in views])
-        look = (ray - cams).mean(0)
+    reach = 3.0 * max(float(size_b.max()), 0.5)
+    hull = on_silhouettes(slam_points, views, batch) if w_geometry > 0 and slam_points is not None \
+        and len(slam_points) else np.zeros((0, 3), np.float32)
+    cams = np.array([v.T_world_camera[:3, 3] for v in views])
+    # the landmarks' median only where the rays give no centre: next to a ray centre it made the search noisier
+    # (docs/experiments/frodo_optim_history.md, "Facing prior and landmark centre")
+    name, anchor = 'ray centre', ray_centre(views, boxes_obs, border)
+    if anchor is None or not np.linalg.norm(anchor - centre_b) < reach:
+        name, anchor = 'landmark centre', landmark_centre(hull, centre_b, reach)
+    if anchor is not None and np.linalg.norm(anchor - centre_b) < reach:
+        look = (anchor - cams).mean(0)
         look[2] = 0.0
-        centres.append(ray)
-        names.append('ray centre')
+        centres.append(anchor)
+        names.append(name)
         if np.linalg.norm(look) > 1e-6:
             look /= np.linalg.norm(look)
             for off in DEPTH_OFFSETS:
-                centres.append(ray + off * look)
-                names.append(f'ray centre {100 * off:+.0f} cm')
+                centres.append(anchor + off * look)
+                names.append(f'{name} {100 * off:+.0f} cm')
     C, Y = len(centres), len(yaws)
     centres_t = torch.as_tensor(np.array(centres), dtype=torch.float32)                        # (C, 3)
     local = torch.as_tensor(pts - mid, dtype=torch.float32)                                    # (P, 3)
@@ -245,8 +265,7 @@ def search(points_norm: np.ndarray, box, views, batch, slam_points: np.ndarray |
 
     marks_t = None
     if w_geometry > 0 and slam_points is not None and len(slam_points):
-        marks = _landmarks(on_silhouettes(slam_points, views, batch), centres, float(scales.max()) * extent / 2,
-                           rng, landmark_samples)
+        marks = _landmarks(hull, centres, float(scales.max()) * extent / 2, rng, landmark_samples)
         marks_t = torch.as_tensor(marks, dtype=torch.float32) if len(marks) >= 5 else None
 
     def score(centre: torch.Tensor, log_s: torch.Tensor, yaw_idx: torch.Tensor) -> torch.Tensor:
@@ -275,6 +294,8 @@ def search(points_norm: np.ndarray, box, views, batch, slam_points: np.ndarray |
             total = total + w_floor * support.floor_energy(world, floor_height, floor_tolerance)
         if height_range is not None and w_height > 0:
             total = total + w_height * support.height_energy(world, height_range)
+        if facing is not None and w_facing > 0:
+            total = total + w_facing * support.facing_energy(rot[yaw_idx][:, :2, 0], facing)
         return total
 
     # grid: every (centre, scale, yaw), in chunks

@@ -234,7 +234,7 @@ class ObjectReconstructor:
                         photometric=photometric, floor_height=floor,
                         height_range=support.class_height_range(fused.class_name), code_class=fused.class_name,
                         neighbour_boxes=[b for other, (_, b) in scene.tracks.items() if other != oid],
-                        should_stop=should_stop)
+                        should_stop=should_stop, facing=self._facing(obj, fused.class_name, scene))
         if result.status is SparseStatus.INTERRUPTED:
             return None, result
         seconds = time.perf_counter() - t0
@@ -262,6 +262,12 @@ class ObjectReconstructor:
                             energies=_energies(result.initial_energies, result.energies),
                             iterations=result.total_iterations, views=result.views), result
 
+    def _facing(self, obj: ObjectInput, class_name: str, scene: Scene) -> np.ndarray | None:
+        """The direction the object should face (E_facing, `support.facing_direction`): towards the table its
+        association box stands at, if any."""
+        others = [track for other, track in scene.tracks.items() if other != obj.object_id]
+        return support.facing_direction(class_name, obj.box, others, self.config.facing_max_gap)
+
     def _dense(self, obj: ObjectInput, sparse: ObjectEstimate, sparse_result: SparseResult, views: ViewMemory,
                scene: Scene, floor: float | None, should_stop: Callable[[], bool] | None, stamp: int) -> StageOutcome:
         """The dense stage after a successful sparse stage: the dense estimate, or the sparse one with the reason."""
@@ -274,7 +280,8 @@ class ObjectReconstructor:
         result, _ = refine_dense_starts(self.prior, sparse.code, sparse.T_world_object, views.dense_views(oid), slam,
                                         box, self.config.dense, should_stop=should_stop,
                                         floor_height=floor, height_range=support.class_height_range(sparse.class_name),
-                                        alternatives=sparse_result.alternatives, max_starts=self.config.dense_starts)
+                                        alternatives=sparse_result.alternatives, max_starts=self.config.dense_starts,
+                                        facing=self._facing(obj, sparse.class_name, scene))
         seconds = time.perf_counter() - t0
         detail = (f'{result.views} views, {result.iterations} it, {result.seconds:.2f}s '
                   f'({result.seconds_per_iteration:.2f}s/it): {result.reason}')

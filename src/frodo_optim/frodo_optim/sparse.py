@@ -25,9 +25,10 @@ detections in a bounded set of views:
   for codes that are not centred).
 - Ep (photometric consistency, paper Eq. 4): Huber colour differences of the points between each view and
   its next views, visible points only (`photometric.py`), when colour views are passed (weight w_photometric).
-- E_floor, E_size (beyond the paper, `support.py`): the object's lowest points on the estimated floor plane
-  (when `floor_height` is given) and its metric height inside its class's range (when `height_range` is
-  given); weights w_floor, w_height.
+- E_floor, E_size, E_facing (beyond the paper, `support.py`): the object's lowest points on the estimated floor
+  plane (when `floor_height` is given), its metric height inside its class's range (when `height_range` is
+  given) and its front towards the table it stands at (when `facing` is given); weights w_floor, w_height,
+  w_facing.
 
 Truncation (beyond the paper): a projected point beyond an image side that the detection touches is
 unknown (the object may continue there), so the points -> mask half does not pull a truncated object back
@@ -99,6 +100,7 @@ class SparseConfig:
     w_floor: float = 0.05             # E_floor (support.py); needs refine(..., floor_height=h)
     floor_tolerance: float = 0.05     # metres: E_floor = huber((bottom - floor) / floor_tolerance)
     w_height: float = 1.0             # E_size (support.py); needs refine(..., height_range=(lo, hi))
+    w_facing: float = 0.05            # E_facing (support.py); needs refine(..., facing=direction)
     code_restarts: int = 4            # also start from the best of the k lowest-energy training codes (0: off)
     restart_screen_views: int = 8     # training codes and their yaws are screened on this many views (0: all views)
     restart_screen_keep: int = 3      # the screen keeps this many times code_restarts candidates for the exact energy
@@ -386,7 +388,8 @@ def code_statistics(training_codes) -> tuple[torch.Tensor, torch.Tensor]:
 def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None = None,
            config: SparseConfig | None = None, init_yaw: float | None = None, photometric=None,
            floor_height: float | None = None, height_range: tuple[float, float] | None = None,
-           code_class: str | None = None, neighbour_boxes=(), should_stop=None) -> SparseResult:
+           code_class: str | None = None, neighbour_boxes=(), should_stop=None,
+           facing: np.ndarray | None = None) -> SparseResult:
     """Yaw search + joint code/pose optimisation of one object (paper Sec. 5.3).
 
     prior: anything with `decode_points(codes) -> (N, 2048, 3)` torch (differentiable) and `training_codes`.
@@ -397,7 +400,8 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
     floor_height: world z of the floor (`support.floor_height`) for E_floor; height_range: the class's metric
     height range (`Category.height_range`) for E_size; None: term off. code_class: the object's class; code
     restarts (`code_restarts`) then draw only that class's training codes. neighbour_boxes: the other objects'
-    boxes (centre, size, yaw), for the landmark selection (`placement.on_silhouettes`). should_stop: optional
+    boxes (centre, size, yaw), for the landmark selection (`placement.on_silhouettes`). facing: the unit horizontal
+    direction (2,) the object's front should take (`support.facing_direction`; None: E_facing off). should_stop: optional
     callable polled after the initial search, every iteration of the stage's runs and every `STOP_POLL` energies of
     the code-restart scoring (a node that has cheaper work waiting): True ends the stage at once with status
     INTERRUPTED and ok=False (nothing of it is kept; the caller runs it again later).
@@ -434,6 +438,7 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
     batch = _Batch(views, cfg.truncation_aware, free_space)
     use_floor = floor_height is not None and math.isfinite(float(floor_height)) and cfg.w_floor > 0
     use_height = height_range is not None and cfg.w_height > 0
+    use_facing = facing is not None and np.isfinite(facing).all() and cfg.w_facing > 0
     subset = torch.randperm(pts0.shape[0], generator=gen)[:min(cfg.point_samples, pts0.shape[0])]
     everything = torch.arange(len(subset))
     mu, sigma = code_statistics(prior.training_codes)
@@ -455,6 +460,9 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
         if use_height:    # beyond the paper: metric height inside the class's range (support.py)
             terms['height'] = support.height_energy(world, height_range)
             total = total + cfg.w_height * terms['height']
+        if use_facing:    # beyond the paper: a chair at a table faces it (support.py); front = +x of the object
+            terms['facing'] = support.facing_energy(torch.stack([torch.cos(yaw), torch.sin(yaw)]), facing)
+            total = total + cfg.w_facing * terms['facing']
         if photometric is not None and cfg.w_photometric > 0:   # paper Eq. 4, visibility-aware (photometric.py)
             terms['photometric'] = photometric_energy(photometric, world, tolerance=0.1 * torch.exp(log_s).detach())
             total = total + cfg.w_photometric * terms['photometric']
@@ -477,7 +485,8 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
             w_silhouette=cfg.w_silhouette, w_geometry=cfg.w_geometry, truncation=cfg.placement_truncation,
             keep=cfg.placement_keep, seed=cfg.seed, floor_height=floor_height if use_floor else None,
             w_floor=cfg.w_floor, floor_tolerance=cfg.floor_tolerance,
-            height_range=height_range if use_height else None, w_height=cfg.w_height)]
+            height_range=height_range if use_height else None, w_height=cfg.w_height,
+            facing=facing if use_facing else None, w_facing=cfg.w_facing)]
     # landmarks. Hypotheses and code restarts use one common set: those near the input box or the best hypothesis
     # that lie in the detections' visual hull (placement.on_silhouettes), so that clutter, floor and neighbour
     # points in a too large region do not favour the placement that covers them. The box starts use those near

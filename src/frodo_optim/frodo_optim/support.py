@@ -15,12 +15,21 @@ real-capture tuning set). Two soft terms rule these placements out:
   class's range [H_min, H_max] (`frodo_common.categories.Category.height_range`, shared with the
   association): E_size = relu(log(H / H_max))^2 + relu(log(H_min / H))^2, zero inside the range.
 
+- **E_facing** (a chair at a table faces it): for an object of a class in `FACES` whose footprint lies within
+  `max_gap` of a table's (`facing_direction`), E_facing = (1 - cos a) / 2, a the horizontal angle between the
+  object's front (+x of the normalised frame, ARCHITECTURE.md) and the inward normal of the table side nearest to
+  it: 0 facing the table, 1 turned away. A walk past a table sees the chairs behind it as backrests above the top
+  and legs below it; the seat is hidden by the table, and a chair facing the table or turned away from it fits
+  those views alike (issue 27, the real kitchen's "chairs seen only as backrests behind the table"). The term
+  breaks that tie the way dining and desk chairs stand; it is weak beside what the views do show.
+
 The floor height h_f is estimated from the scene, not assumed (`floor_height`): the median bottom of the
 association's boxes of floor-standing classes (robust to a few wrong boxes), refined to the densest
 horizontal layer of landmarks near it when there is one (the floor's own texture points).
 """
 from __future__ import annotations
 
+import math
 from typing import Iterable
 
 import numpy as np
@@ -29,6 +38,7 @@ import torch
 from frodo_common.categories import BY_NAME
 
 FLOOR_CLASSES = ('chair', 'dining table', 'couch', 'bed')   # stand on the floor (an object on a table does not)
+FACES = {'chair': ('dining table',)}                         # a chair at a table faces it (E_facing)
 
 
 def floor_height(boxes: Iterable, landmarks: np.ndarray | None = None, search: float = 0.15, layer: float = 0.02,
@@ -99,3 +109,69 @@ def class_height_range(class_name: str) -> tuple[float, float] | None:
     if category is None or not np.isfinite(category.height_range[1]):
         return None
     return category.height_range
+
+
+
+def _footprint(box) -> np.ndarray:
+    """(4, 2) corners of an upright box's (centre, size, yaw) footprint, in order around it."""
+    center, size, yaw = box
+    c, s = math.cos(float(yaw)), math.sin(float(yaw))
+    local = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * (0.5 * np.asarray(size, dtype=np.float64)[:2])
+    return local @ np.array([[c, s], [-s, c]]) + np.asarray(center, dtype=np.float64)[:2]
+
+
+def _point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distances (N,) of points (N, 2) to the segment a-b."""
+    ab = b - a
+    t = np.clip((p - a) @ ab / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+    return np.linalg.norm(p - (a + t[:, None] * ab), axis=1)
+
+
+def footprint_gap(a, b) -> float:
+    """Horizontal distance (m) between the footprints of two upright boxes (centre, size, yaw); 0 where they
+    overlap. Two convex polygons overlap unless an edge normal of one separates them; apart, their distance is
+    that of a corner of one to an edge of the other."""
+    pa, pb = _footprint(a), _footprint(b)
+    separated = False
+    for poly in (pa, pb):
+        for k in range(2):
+            edge = poly[k + 1] - poly[k]
+            normal = np.array([-edge[1], edge[0]])
+            if (pa @ normal).max() < (pb @ normal).min() or (pb @ normal).max() < (pa @ normal).min():
+                separated = True
+    if not separated:
+        return 0.0
+    return float(min(_point_segment_distance(p, q[k], q[(k + 1) % 4]).min()
+                     for p, q in ((pa, pb), (pb, pa)) for k in range(4)))
+
+
+def facing_direction(class_name: str, box, tracks: Iterable, max_gap: float = 0.3) -> np.ndarray | None:
+    """The unit horizontal direction (2,) an object of `class_name` with the upright box (centre, size, yaw) is
+    expected to face (E_facing), or None: the inward normal of the side nearest to the box centre of the nearest
+    table (a class in FACES[class_name]) among `tracks` [(class name, box)] whose footprint is within `max_gap`
+    metres of the object's (chairs tucked under it: 0)."""
+    faced = FACES.get(class_name, ())
+    own_center = np.asarray(tuple(box)[0], dtype=np.float64)
+    if not faced or not np.isfinite(own_center).all():
+        return None
+    tables = [tuple(other) for name, other in tracks if name in faced]
+    near = [(footprint_gap(box, other), other) for other in tables
+            if np.isfinite(np.asarray(other[0], dtype=np.float64)).all()
+            and np.isfinite(np.asarray(other[1], dtype=np.float64)).all()]
+    near = [(gap, other) for gap, other in near if gap <= max_gap]
+    if not near:
+        return None
+    _, (center, size, yaw) = min(near, key=lambda g: g[0])
+    c, s = math.cos(float(yaw)), math.sin(float(yaw))
+    axes = np.array([[c, s], [-s, c]])             # rows: the table's own x and y axes in the world
+    local = axes @ (own_center[:2] - np.asarray(center, dtype=np.float64)[:2])
+    side = int(np.argmin(0.5 * np.asarray(size, dtype=np.float64)[:2] - np.abs(local)))
+    return -math.copysign(1.0, local[side]) * axes[side]
+
+
+def facing_energy(front_xy: torch.Tensor, direction) -> torch.Tensor:
+    """E_facing (...): (1 - cos a) / 2 of the angle a between horizontal front vectors (..., 2) (any length) and
+    the unit direction (2,) to face."""
+    d = torch.as_tensor(np.asarray(direction, dtype=np.float32), dtype=front_xy.dtype, device=front_xy.device)
+    cos = (front_xy * d).sum(-1) / front_xy.norm(dim=-1).clamp_min(1e-9)
+    return 0.5 * (1.0 - cos)

@@ -6,6 +6,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from frodo_common.geometry import Box3D
 from frodo_common.schemas import ASSOCIATION_DTYPE
 from frodo_optim.config import OptimConfig, PARAMS, optim_config
 from frodo_optim.dense import DenseResult, DenseStop
@@ -87,6 +88,21 @@ def test_all_three_stages_run_and_each_ends_with_a_reason(prior, two_chairs):
     assert final.stage_reason == out.final.reason and final.stage == ('dense' if out.final.reason
                                                                      is StageReason.ALL_STAGES_DONE else 'sparse')
     assert {'fused_s', 'sparse_s', 'dense_s'} <= set(final.timings)
+
+
+def test_a_chair_next_to_a_table_of_the_scene_is_given_the_facing_prior(prior, two_chairs):
+    """The scene's tracks reach the stages: a chair whose box stands at a table's gets E_facing (support.py), one
+    with no table near it does not."""
+    K, frames, boxes, _ = two_chairs
+    center, size, yaw = boxes[1]
+    table = Box3D(np.asarray(center) + [0.5 * size[0] + 0.45, 0.0, 0.0], [0.8, 1.4, 0.75], 0.0)
+    cfg = fast_config(dense_enabled=False)
+    energies = []
+    for tracks in ({7: ('dining table', table)}, {7: ('chair', table)}, {}):
+        rec = ObjectReconstructor(prior, cfg)
+        rec.reconstruct(chair_input(two_chairs), memory_of(frames, K, cfg), Scene(tracks=tracks))
+        energies.append(rec.sparse_results[1][1].energies)
+    assert 'facing' in energies[0] and 'facing' not in energies[1] and 'facing' not in energies[2]
 
 
 def test_the_fused_mesh_is_coarser_and_the_refined_ones_at_mesh_resolution(prior, two_chairs):

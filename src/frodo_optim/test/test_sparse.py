@@ -231,3 +231,24 @@ def test_free_space_keeps_an_undetected_occluder_from_carving_the_object(prior, 
     assert carved > 1.5 * base
     assert energy(hidden, 0.05) < base + 0.4 * (carved - base)      # most of what the occluder added is gone
     assert abs(energy(clear, 0.05) - base) < 0.1 * base
+
+
+def test_the_facing_prior_decides_front_or_back_when_the_views_see_one_side(prior, chair_scene):
+    """Seen straight from its front at seat height, a chair and the same chair turned away have nearly the same
+    silhouettes (a chair behind a table: E_facing, support.py): the facing direction decides which is returned."""
+    centre, _, yaw = chair_scene['box']
+    world = chair_scene['mesh'].copy().apply_transform(pose_matrix(yaw, chair_scene['t'], chair_scene['s']))
+    renderer = Renderer([RenderObject(world, label=1)])
+    K = intrinsics(W, H, 60.0)
+    rng = np.random.default_rng(0)
+    views = []
+    for a in np.radians([-12, -4, 4, 12]):
+        eye = centre + 2.5 * np.array([math.cos(yaw + a), math.sin(yaw + a), 0.0])
+        mask = renderer.render(K, look_at(eye, centre), W, H, shadows=False).labels == 1
+        views.append(view_from_mask(K, look_at(eye, centre), mask, 128, rng=rng))
+    front = np.array([math.cos(yaw), math.sin(yaw)])
+    towards = refine(prior, chair_scene['code'], chair_scene['box'], views, facing=front)
+    away = refine(prior, chair_scene['code'], chair_scene['box'], views, facing=-front)
+    assert _angle(towards.yaw, yaw) < math.radians(15) and towards.energies['facing'] < 0.01
+    assert _angle(away.yaw, yaw + math.pi) < math.radians(15) and away.energies['facing'] < 0.01
+    assert away.energies['silhouette'] - towards.energies['silhouette'] < SparseConfig().w_facing

@@ -1,6 +1,6 @@
 """Support priors (frodo_optim.support, beyond the paper): floor estimate, E_floor, E_size (values, gradients
-against finite differences), the class height ranges shared through frodo_common, and the truncation-aware
-silhouette of the sparse stage."""
+against finite differences), the class height ranges shared through frodo_common, the truncation-aware
+silhouette of the sparse stage, and E_facing (footprint gaps, the side of the table a chair stands at)."""
 import math
 
 import numpy as np
@@ -122,3 +122,48 @@ def test_truncation_aware_silhouette_ignores_points_beyond_the_border_the_detect
     beyond = torch.tensor([[1.5, 0.0, 2.0]] * 8, dtype=torch.float32)
     subset = torch.arange(8)
     assert float(aware.silhouette(beyond, subset)) < float(plain.silhouette(beyond, subset))
+
+
+def test_footprint_gap_is_zero_for_overlapping_boxes_and_the_distance_otherwise():
+    table = (np.array([0.0, 0.0, 0.4]), np.array([1.6, 0.8, 0.8]), 0.0)
+    chair = lambda x, y, yaw=0.0: (np.array([x, y, 0.45]), np.array([0.5, 0.5, 0.9]), yaw)
+    assert support.footprint_gap(chair(0.0, 0.5), table) == 0.0                     # tucked under the side
+    assert support.footprint_gap(chair(0.0, 1.0), table) == pytest.approx(0.35)     # 1.0 - 0.4 - 0.25
+    assert support.footprint_gap(table, chair(0.0, 1.0)) == pytest.approx(0.35)
+    assert support.footprint_gap(chair(1.3, 0.9), table) == pytest.approx(math.hypot(0.25, 0.25))   # corner to corner
+    # turned 45 degrees, its corner towards the table: the corner's distance
+    turned = chair(0.0, 0.4 + 0.1 + 0.25 * math.sqrt(2), math.pi / 4)
+    assert support.footprint_gap(turned, table) == pytest.approx(0.1)
+
+
+def test_a_chair_at_a_table_faces_the_side_it_stands_at():
+    yaw = 0.5                                                 # the table turned; its long side along (cos, sin)
+    c, s = math.cos(yaw), math.sin(yaw)
+    along, across = np.array([c, s]), np.array([-s, c])
+    table = ('dining table', (np.array([2.0, 1.0, 0.4]), np.array([1.6, 0.8, 0.8]), yaw))
+
+    def chair_at(offset, size=0.5):
+        xy = np.array([2.0, 1.0]) + offset
+        return (np.array([xy[0], xy[1], 0.45]), np.array([size, size, 0.9]), 0.1)
+
+    # behind its long side (tucked under it or a little away), at its end: the side's inward normal
+    assert support.facing_direction('chair', chair_at(0.45 * across), [table]) == pytest.approx(-across)
+    assert support.facing_direction('chair', chair_at(-0.8 * across), [table]) == pytest.approx(across)
+    assert support.facing_direction('chair', chair_at(1.0 * along), [table]) == pytest.approx(-along)
+    # too far from every table, no table, or no facing rule for the class: none
+    assert support.facing_direction('chair', chair_at(1.5 * across), [table]) is None
+    assert support.facing_direction('chair', chair_at(0.45 * across), [('chair', table[1])]) is None
+    assert support.facing_direction('dining table', chair_at(0.45 * across), [table]) is None
+    nan_box = (np.full(3, np.nan), np.ones(3), 0.0)
+    assert support.facing_direction('chair', nan_box, [table]) is None
+    assert support.facing_direction('chair', chair_at(0.45 * across), [('dining table', nan_box)]) is None
+    # the nearest of two tables
+    other = ('dining table', (np.array([2.0, 1.0, 0.4]) + np.r_[1.2 * across, 0.0], np.array([1.6, 0.8, 0.8]), yaw))
+    assert support.facing_direction('chair', chair_at(0.75 * across, 0.3), [table, other]) == pytest.approx(across)
+    assert support.facing_direction('chair', chair_at(0.75 * across, 0.3), [table]) == pytest.approx(-across)
+
+
+def test_facing_energy_is_zero_facing_one_turned_away_and_batched():
+    d = np.array([0.0, 1.0])
+    fronts = torch.tensor([[0.0, 2.0], [0.0, -1.0], [3.0, 0.0], [1.0, 1.0]])
+    assert support.facing_energy(fronts, d).tolist() == pytest.approx([0.0, 1.0, 0.5, 0.5 - 0.5 / math.sqrt(2)])
