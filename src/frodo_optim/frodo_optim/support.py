@@ -21,7 +21,7 @@ real-capture tuning set). Two soft terms rule these placements out:
   it: 0 facing the table, 1 turned away. A walk past a table sees the chairs behind it as backrests above the top
   and legs below it; the seat is hidden by the table, and a chair facing the table or turned away from it fits
   those views alike (issue 27, the real kitchen's "chairs seen only as backrests behind the table"). The term
-  breaks that tie the way dining and desk chairs stand; it is weak beside what the views do show.
+  breaks that tie the way dining and desk chairs stand; a flip costs the sparse energy w_facing (0.05).
 
 The floor height h_f is estimated from the scene, not assumed (`floor_height`): the median bottom of the
 association's boxes of floor-standing classes (robust to a few wrong boxes), refined to the densest
@@ -36,6 +36,7 @@ import numpy as np
 import torch
 
 from frodo_common.categories import BY_NAME
+from frodo_common.geometry import box_corners, yaw_matrix
 
 FLOOR_CLASSES = ('chair', 'dining table', 'couch', 'bed')   # stand on the floor (an object on a table does not)
 FACES = {'chair': ('dining table',)}                         # a chair at a table faces it (E_facing)
@@ -111,13 +112,10 @@ def class_height_range(class_name: str) -> tuple[float, float] | None:
     return category.height_range
 
 
-
 def _footprint(box) -> np.ndarray:
     """(4, 2) corners of an upright box's (centre, size, yaw) footprint, in order around it."""
     center, size, yaw = box
-    c, s = math.cos(float(yaw)), math.sin(float(yaw))
-    local = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * (0.5 * np.asarray(size, dtype=np.float64)[:2])
-    return local @ np.array([[c, s], [-s, c]]) + np.asarray(center, dtype=np.float64)[:2]
+    return box_corners(center, size, float(yaw))[[0, 4, 6, 2], :2]      # bottom corners (-,-) (+,-) (+,+) (-,+)
 
 
 def _point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -162,8 +160,7 @@ def facing_direction(class_name: str, box, tracks: Iterable, max_gap: float = 0.
     if not near:
         return None
     _, (center, size, yaw) = min(near, key=lambda g: g[0])
-    c, s = math.cos(float(yaw)), math.sin(float(yaw))
-    axes = np.array([[c, s], [-s, c]])             # rows: the table's own x and y axes in the world
+    axes = yaw_matrix(float(yaw))[:2, :2].T        # rows: the table's own x and y axes in the world
     local = axes @ (own_center[:2] - np.asarray(center, dtype=np.float64)[:2])
     side = int(np.argmin(0.5 * np.asarray(size, dtype=np.float64)[:2] - np.abs(local)))
     return -math.copysign(1.0, local[side]) * axes[side]
