@@ -103,6 +103,13 @@ def test_cli_writes_what_frodo_run_writes_and_scores_it(tmp_path, fast_params, c
     assert stamps['/world/associations'] and stamps['/world/tracks']
 
 
+def test_cli_refuses_a_worker_count_that_is_not_one_or_more_or_auto(tmp_path, capsys):
+    for value in ('0', 'two'):
+        assert frodo(['reconstruct', str(DEMO), '--out', str(tmp_path / 'out'), '--workers', value]) == 2
+        assert "--workers must be" in capsys.readouterr().err
+    assert not (tmp_path / 'out').exists()
+
+
 def test_a_bag_without_masks_is_refused_with_the_cause_and_the_fix(tmp_path, capsys):
     bag = without_topic(DEMO, tmp_path / 'no_masks.mcap', '/camera/instances')
     with pytest.raises(BagRefused, match='no instance masks.*external.*maskrcnn'):

@@ -29,10 +29,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              '(repeatable; later files win)')
     parser.add_argument('--threads', type=int, default=0, metavar='N',
                         help='torch CPU threads (default: torch\'s own choice)')
-    parser.add_argument('--workers', type=int, default=1, metavar='N',
+    parser.add_argument('--workers', default='auto', metavar='N',
                         help='processes that refine objects at the same time, each with threads / N torch threads '
-                             '(default: %(default)s; worth it with more cores than objects need: results depend on '
-                             'N through the thread count only)')
+                             '(default: %(default)s, as `frodo run --optim-workers`: 2 on two or more CPUs, '
+                             'where two one-thread workers end sooner than one two-thread process; results depend '
+                             'on N through the thread count only)')
     parser.add_argument('--quiet', action='store_true', help='no per-object progress lines')
     parser.add_argument('--no-recording', action='store_true', help='do not write the Rerun recording DIR/frodo.rrd')
     parser.epilog = 'Exit code: 0 done, 1 the bag cannot give objects or a layer failed, 2 bad arguments.'
@@ -43,12 +44,14 @@ def run(args: argparse.Namespace) -> int:
     from frodo_common.host import reproducible_math
     reproducible_math()                       # before torch is imported: the same bag gives the same bits
     from frodo_bringup.cli_demo import score_outputs
-    from frodo_bringup.graph import GraphError
     from frodo_bringup.pipeline import PipelineConfig, PipelineError, reconstruct
     from frodo_bringup.preflight import BagRefused
     from frodo_common.bag import BagError
-    if args.workers < 1:
-        print(f'frodo reconstruct: error: --workers must be >= 1, got {args.workers}', file=sys.stderr)
+    from frodo_bringup.graph import GraphError, optim_worker_count
+    try:
+        workers = optim_worker_count(args.workers, option='--workers')
+    except GraphError as err:
+        print(f'frodo reconstruct: error: {err}', file=sys.stderr)
         return 2
     if args.threads > 0:
         import torch
@@ -57,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         config = PipelineConfig.from_params_files(args.params)
         result = reconstruct(args.bag, config, progress=None if args.quiet else lambda line: print(line, flush=True),
-                             workers=args.workers)
+                             workers=workers)
     except (BagRefused, PipelineError, BagError, GraphError, FileNotFoundError) as err:
         print(f'frodo reconstruct: error: {err}', file=sys.stderr)
         return EXIT_FAILED

@@ -65,17 +65,17 @@ def is_optimiser(name: str) -> bool:
     return name == OPTIMISER or bool(_WORKER_NAME.fullmatch(name))
 
 
-def optim_worker_count(value: int | str | None) -> int:
-    """The number of optimiser workers for `--optim-workers VALUE`: a positive integer, or 'auto' / None for
-    AUTO_OPTIM_WORKERS capped at the CPUs this process may use."""
+def optim_worker_count(value: int | str | None, option: str = '--optim-workers') -> int:
+    """The number of optimiser workers for `--optim-workers VALUE` (or another `option`, named in errors): a
+    positive integer, or 'auto' / None for AUTO_OPTIM_WORKERS capped at the CPUs this process may use."""
     if value is None or value == 'auto':
         return max(1, min(AUTO_OPTIM_WORKERS, len(os.sched_getaffinity(0))))
     try:
         count = int(value)
     except (TypeError, ValueError):
-        raise GraphError(f"--optim-workers must be a positive integer or 'auto', got {value!r}") from None
+        raise GraphError(f"{option} must be a positive integer or 'auto', got {value!r}") from None
     if count < 1:
-        raise GraphError(f'--optim-workers must be at least 1, got {count}')
+        raise GraphError(f'{option} must be at least 1, got {count}')
     return count
 
 
