@@ -98,7 +98,8 @@ _TABLE: tuple[tuple[str, tuple[str, ...], str], ...] = (
      'sparse and dense stages (beyond the paper: height inside Category.height_range; support.py); 0 disables.'),
     ('support_w_facing', ('sparse.w_facing', 'dense.w_facing'), 'Weight of the facing prior E_facing in the sparse '
      'and dense stages (beyond the paper: a chair whose box is within facing_max_gap of a table\'s faces that table; '
-     'it breaks the tie between facing it and turning away when the table hides the seat; support.py); 0 disables.'),
+     'it breaks the tie between facing it and turning away when the table hides the seat; support.py), scaled by how '
+     'one-sided the views are: times 1 - (arc of directions holding the cameras) / 180 deg; 0 disables.'),
     ('facing_max_gap', ('facing_max_gap',), 'Metres between the footprints of a chair\'s and a table\'s association '
      'boxes within which the chair is taken to stand at the table (E_facing).'),
     ('dense_enabled', ('dense_enabled',), 'Run the dense stage (Sec. 5.3 Dense Optimization: SDF decoder, code + '

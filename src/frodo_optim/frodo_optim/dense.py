@@ -94,7 +94,7 @@ class DenseConfig:
     w_floor: float = 0.05              # E_floor (support.py); needs refine_dense(..., floor_height=h)
     floor_tolerance: float = 0.05      # metres
     w_height: float = 1.0              # E_size (support.py); needs refine_dense(..., height_range=(lo, hi))
-    w_facing: float = 0.05             # E_facing (support.py); needs refine_dense(..., facing=direction)
+    w_facing: float = 0.1              # E_facing (support.py), times support.one_sided_share; needs facing=
     geometry_truncation: float = 0.1   # metres (Eg, Ed)
     photometric_neighbours: int = 2
     huber_delta: float = 0.1
@@ -588,7 +588,11 @@ def _dense_run(prior, code, T_world_object: np.ndarray, views: list[DenseView], 
     mu, sigma = (x.to(dev) for x in code_statistics(prior.training_codes))
     use_floor = floor_height is not None and math.isfinite(float(floor_height)) and cfg.w_floor > 0
     use_height = height_range is not None and cfg.w_height > 0
-    use_facing = facing is not None and np.isfinite(facing).all() and cfg.w_facing > 0
+    # E_facing's weight, by how one-sided the views are (support.one_sided_share)
+    w_facing = cfg.w_facing * support.one_sided_share(
+        [np.asarray(v.T_world_camera)[:3, 3] for v in views], T0[:3, 3]) \
+        if facing is not None and np.isfinite(facing).all() and cfg.w_facing > 0 else 0.0
+    use_facing = w_facing > 0
     grid_xyz = torch.as_tensor(grid_points(Rg).reshape(-1, 3), device=dev)
     cell = 2.0 / (Rg - 1)
 
@@ -666,7 +670,7 @@ def _dense_run(prior, code, T_world_object: np.ndarray, views: list[DenseView], 
             terms['facing'] = support.facing_energy(R[:2, 0], facing)
         weights = {'silhouette': cfg.w_silhouette, 'photometric': cfg.w_photometric, 'geometry': cfg.w_geometry,
                    'depth': cfg.w_depth, 'code': cfg.w_code, 'floor': cfg.w_floor, 'height': cfg.w_height,
-                   'facing': cfg.w_facing}
+                   'facing': w_facing}
         total = sum(weights[k] * v for k, v in terms.items())
         with torch.no_grad():   # the check energy: same terms, silhouette on the fixed finest-level rays
             sil_check = terms['silhouette'] if rays is check_rays else dense_silhouette(

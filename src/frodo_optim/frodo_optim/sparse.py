@@ -100,7 +100,7 @@ class SparseConfig:
     w_floor: float = 0.05             # E_floor (support.py); needs refine(..., floor_height=h)
     floor_tolerance: float = 0.05     # metres: E_floor = huber((bottom - floor) / floor_tolerance)
     w_height: float = 1.0             # E_size (support.py); needs refine(..., height_range=(lo, hi))
-    w_facing: float = 0.05            # E_facing (support.py); needs refine(..., facing=direction)
+    w_facing: float = 0.1             # E_facing (support.py), times support.one_sided_share; needs refine(..., facing=)
     code_restarts: int = 4            # also start from the best of the k lowest-energy training codes (0: off)
     restart_screen_views: int = 8     # training codes and their yaws are screened on this many views (0: all views)
     restart_screen_keep: int = 3      # the screen keeps this many times code_restarts candidates for the exact energy
@@ -438,7 +438,11 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
     batch = _Batch(views, cfg.truncation_aware, free_space)
     use_floor = floor_height is not None and math.isfinite(float(floor_height)) and cfg.w_floor > 0
     use_height = height_range is not None and cfg.w_height > 0
-    use_facing = facing is not None and np.isfinite(facing).all() and cfg.w_facing > 0
+    # E_facing's weight, by how one-sided the views are (support.one_sided_share)
+    w_facing = cfg.w_facing * support.one_sided_share(
+        [np.asarray(v.T_world_camera)[:3, 3] for v in views], center) \
+        if facing is not None and np.isfinite(facing).all() and cfg.w_facing > 0 else 0.0
+    use_facing = w_facing > 0
     subset = torch.randperm(pts0.shape[0], generator=gen)[:min(cfg.point_samples, pts0.shape[0])]
     everything = torch.arange(len(subset))
     mu, sigma = code_statistics(prior.training_codes)
@@ -462,7 +466,7 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
             total = total + cfg.w_height * terms['height']
         if use_facing:    # beyond the paper: a chair at a table faces it (support.py); front = +x of the object
             terms['facing'] = support.facing_energy(torch.stack([torch.cos(yaw), torch.sin(yaw)]), facing)
-            total = total + cfg.w_facing * terms['facing']
+            total = total + w_facing * terms['facing']
         if photometric is not None and cfg.w_photometric > 0:   # paper Eq. 4, visibility-aware (photometric.py)
             terms['photometric'] = photometric_energy(photometric, world, tolerance=0.1 * torch.exp(log_s).detach())
             total = total + cfg.w_photometric * terms['photometric']
@@ -486,7 +490,7 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
             keep=cfg.placement_keep, seed=cfg.seed, floor_height=floor_height if use_floor else None,
             w_floor=cfg.w_floor, floor_tolerance=cfg.floor_tolerance,
             height_range=height_range if use_height else None, w_height=cfg.w_height,
-            facing=facing if use_facing else None, w_facing=cfg.w_facing)]
+            facing=facing if use_facing else None, w_facing=w_facing)]
     # landmarks. Hypotheses and code restarts use one common set: those near the input box or the best hypothesis
     # that lie in the detections' visual hull (placement.on_silhouettes), so that clutter, floor and neighbour
     # points in a too large region do not favour the placement that covers them. The box starts use those near

@@ -21,7 +21,9 @@ real-capture tuning set). Two soft terms rule these placements out:
   it: 0 facing the table, 1 turned away. A walk past a table sees the chairs behind it as backrests above the top
   and legs below it; the seat is hidden by the table, and a chair facing the table or turned away from it fits
   those views alike (issue 27, the real kitchen's "chairs seen only as backrests behind the table"). The term
-  breaks that tie the way dining and desk chairs stand; a flip costs the sparse energy w_facing (0.05).
+  breaks that tie the way dining and desk chairs stand; a flip costs the sparse energy up to w_facing (0.1).
+  Only views from one side leave that tie: the weight is scaled by `one_sided_share`, 1 - (the arc of
+  directions from the object that holds its cameras) / 180 degrees, so views of front and back decide alone.
 
 The floor height h_f is estimated from the scene, not assumed (`floor_height`): the median bottom of the
 association's boxes of floor-standing classes (robust to a few wrong boxes), refined to the densest
@@ -172,3 +174,24 @@ def facing_energy(front_xy: torch.Tensor, direction) -> torch.Tensor:
     d = torch.as_tensor(np.asarray(direction, dtype=np.float32), dtype=front_xy.dtype, device=front_xy.device)
     cos = (front_xy * d).sum(-1) / front_xy.norm(dim=-1).clamp_min(1e-9)
     return 0.5 * (1.0 - cos)
+
+
+def view_span(camera_centres: np.ndarray, centre) -> float:
+    """The smallest arc (degrees, 0-360) of horizontal directions from `centre` that holds every camera centre
+    (V, 3) (world); NaN rows are left out, and no camera gives 0."""
+    offsets = np.asarray(camera_centres, dtype=np.float64).reshape(-1, 3)[:, :2] - np.asarray(centre, np.float64)[:2]
+    offsets = offsets[np.isfinite(offsets).all(axis=1)]
+    if len(offsets) < 2:
+        return 0.0
+    azimuths = np.sort(np.arctan2(offsets[:, 1], offsets[:, 0]))
+    gaps = np.diff(np.append(azimuths, azimuths[0] + 2 * math.pi))
+    return math.degrees(2 * math.pi - float(gaps.max()))
+
+
+def one_sided_share(camera_centres: np.ndarray, centre) -> float:
+    """The share (0-1) of w_facing that E_facing gets: 1 - view_span / 180 degrees, at least 0. The tie it breaks
+    (front or back, with the seat hidden) is left only by views from one side; views from opposite sides see
+    front and back, and there a prior strong enough for the one-sided case overrode them (realcapture-tune2,
+    docs/experiments/frodo_optim_history.md). On the tuning sets the chairs at tables are seen over 3-18 degrees
+    on the walks (median 10) and 178-299 degrees on the handheld captures."""
+    return max(0.0, 1.0 - view_span(camera_centres, centre) / 180.0)

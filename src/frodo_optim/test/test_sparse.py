@@ -252,3 +252,12 @@ def test_the_facing_prior_decides_front_or_back_when_the_views_see_one_side(prio
     assert _angle(towards.yaw, yaw) < math.radians(15) and towards.energies['facing'] < 0.01
     assert _angle(away.yaw, yaw + math.pi) < math.radians(15) and away.energies['facing'] < 0.01
     assert away.energies['silhouette'] - towards.energies['silhouette'] < SparseConfig().w_facing
+
+
+def test_views_from_all_around_decide_the_facing_themselves(prior, chair_scene):
+    """Seen from 8 directions around it the chair's front is in the data: a facing direction pointing the other
+    way gets no weight (support.one_sided_share) and the chair keeps its true yaw."""
+    turned = refine(prior, chair_scene['code'], chair_scene['box'], chair_scene['views'],
+                    facing=-np.array([math.cos(chair_scene['yaw']), math.sin(chair_scene['yaw'])]))
+    assert 'facing' not in turned.energies
+    assert _angle(turned.yaw, chair_scene['yaw']) < math.radians(15)

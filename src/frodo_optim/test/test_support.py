@@ -167,3 +167,21 @@ def test_facing_energy_is_zero_facing_one_turned_away_and_batched():
     d = np.array([0.0, 1.0])
     fronts = torch.tensor([[0.0, 2.0], [0.0, -1.0], [3.0, 0.0], [1.0, 1.0]])
     assert support.facing_energy(fronts, d).tolist() == pytest.approx([0.0, 1.0, 0.5, 0.5 - 0.5 / math.sqrt(2)])
+
+
+def _cameras(azimuths_deg, centre=(1.0, -2.0, 0.0), radius=2.5):
+    a = np.radians(azimuths_deg)
+    return np.c_[centre[0] + radius * np.cos(a), centre[1] + radius * np.sin(a), np.full(len(a), 1.4)]
+
+
+def test_the_facing_prior_weighs_by_how_one_sided_the_views_are():
+    """view_span is the smallest arc of directions from the object holding every camera (across the +-180 degree
+    seam too); E_facing's share falls from 1 (one direction) to 0 at 180 degrees (views of front and back)."""
+    centre = np.array([1.0, -2.0, 0.4])
+    assert support.view_span(_cameras([10, 20, 40]), centre) == pytest.approx(30.0)
+    assert support.view_span(_cameras([170, -170, 175]), centre) == pytest.approx(20.0)
+    assert support.view_span(_cameras([0, 120, 240]), centre) == pytest.approx(240.0)
+    assert support.view_span(np.r_[_cameras([10, 40]), [[np.nan, 0.0, 1.0]]], centre) == pytest.approx(30.0)
+    assert support.view_span(_cameras([10]), centre) == 0.0
+    assert support.one_sided_share(_cameras([10, 40]), centre) == pytest.approx(1 - 30 / 180)
+    assert support.one_sided_share(_cameras([0, 100, 200]), centre) == 0.0
