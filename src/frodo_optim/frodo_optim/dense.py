@@ -588,10 +588,7 @@ def _dense_run(prior, code, T_world_object: np.ndarray, views: list[DenseView], 
     mu, sigma = (x.to(dev) for x in code_statistics(prior.training_codes))
     use_floor = floor_height is not None and math.isfinite(float(floor_height)) and cfg.w_floor > 0
     use_height = height_range is not None and cfg.w_height > 0
-    # E_facing's weight, by how one-sided the views are (support.one_sided_share)
-    w_facing = cfg.w_facing * support.one_sided_share(
-        [np.asarray(v.T_world_camera)[:3, 3] for v in views], T0[:3, 3]) \
-        if facing is not None and np.isfinite(facing).all() and cfg.w_facing > 0 else 0.0
+    w_facing = support.facing_weight(cfg.w_facing, facing, [np.asarray(v.T_world_camera)[:3, 3] for v in views], T0[:3, 3])
     use_facing = w_facing > 0
     grid_xyz = torch.as_tensor(grid_points(Rg).reshape(-1, 3), device=dev)
     cell = 2.0 / (Rg - 1)

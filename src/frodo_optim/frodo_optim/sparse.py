@@ -438,10 +438,7 @@ def refine(prior, code, box, views: list[View], slam_points: np.ndarray | None =
     batch = _Batch(views, cfg.truncation_aware, free_space)
     use_floor = floor_height is not None and math.isfinite(float(floor_height)) and cfg.w_floor > 0
     use_height = height_range is not None and cfg.w_height > 0
-    # E_facing's weight, by how one-sided the views are (support.one_sided_share)
-    w_facing = cfg.w_facing * support.one_sided_share(
-        [np.asarray(v.T_world_camera)[:3, 3] for v in views], center) \
-        if facing is not None and np.isfinite(facing).all() and cfg.w_facing > 0 else 0.0
+    w_facing = support.facing_weight(cfg.w_facing, facing, [np.asarray(v.T_world_camera)[:3, 3] for v in views], center)
     use_facing = w_facing > 0
     subset = torch.randperm(pts0.shape[0], generator=gen)[:min(cfg.point_samples, pts0.shape[0])]
     everything = torch.arange(len(subset))

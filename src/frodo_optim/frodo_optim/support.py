@@ -195,3 +195,11 @@ def one_sided_share(camera_centres: np.ndarray, centre) -> float:
     docs/experiments/frodo_optim_history.md). On the tuning sets the chairs at tables are seen over 3-18 degrees
     on the walks (median 10) and 178-299 degrees on the handheld captures."""
     return max(0.0, 1.0 - view_span(camera_centres, centre) / 180.0)
+
+
+def facing_weight(weight: float, direction, camera_centres, centre) -> float:
+    """E_facing's weight in a stage: `weight` times `one_sided_share` of its cameras about `centre`; 0 where there
+    is no finite direction to face (None: no table near) or the weight is off."""
+    if direction is None or not np.isfinite(direction).all() or weight <= 0:
+        return 0.0
+    return weight * one_sided_share(camera_centres, centre)

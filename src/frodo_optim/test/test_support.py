@@ -185,3 +185,9 @@ def test_the_facing_prior_weighs_by_how_one_sided_the_views_are():
     assert support.view_span(_cameras([10]), centre) == 0.0
     assert support.one_sided_share(_cameras([10, 40]), centre) == pytest.approx(1 - 30 / 180)
     assert support.one_sided_share(_cameras([0, 100, 200]), centre) == 0.0
+    # a stage's weight: none without a finite direction to face or with the term off
+    toward = np.array([1.0, 0.0])
+    assert support.facing_weight(0.1, toward, _cameras([10, 40]), centre) == pytest.approx(0.1 * (1 - 30 / 180))
+    assert support.facing_weight(0.1, None, _cameras([10, 40]), centre) == 0.0
+    assert support.facing_weight(0.1, np.array([np.nan, 0.0]), _cameras([10, 40]), centre) == 0.0
+    assert support.facing_weight(0.0, toward, _cameras([10, 40]), centre) == 0.0
