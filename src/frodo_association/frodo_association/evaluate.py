@@ -45,7 +45,7 @@ from frodo_common.frames import depth_to_metres
 from frodo_association.tracker import Associator
 from frodo_association.synthetic import (BoxObject, SynthFrame, SynthScene, add_noise, make_furniture_scene,
                                         make_scene)
-from frodo_common.geometry import invert_transform
+from frodo_common.geometry import bearing_span, invert_transform
 from frodo_detection.core import FilterConfig, filter_instances, instance_boxes
 
 LAYOUTS: dict[str, dict] = {
@@ -195,11 +195,7 @@ def placement_evidence(assoc: Associator, rows: np.ndarray, obj: BoxObject) -> t
     frames = assoc.rows.frame[rows]
     T = assoc.frames.T_camera_world[frames]
     cams = np.einsum('fij,fj->fi', -np.transpose(T[:, :3, :3], (0, 2, 1)), T[:, :3, 3])     # camera centres
-    look = obj.center[:2] - cams[:, :2]
-    bearing = np.arctan2(look[:, 1], look[:, 0])
-    mean = np.arctan2(np.sin(bearing).mean(), np.cos(bearing).mean())
-    relative = np.angle(np.exp(1j * (bearing - mean)))
-    spread = float(np.degrees(relative.max() - relative.min())) if len(rows) else 0.0
+    spread = bearing_span(cams, obj.center)
     uncut = assoc.rows.fit_edges[rows, 3]
     if not uncut.any():
         return spread, None

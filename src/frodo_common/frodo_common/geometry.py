@@ -129,6 +129,19 @@ def box_corners(center, size, yaw: float) -> np.ndarray:
     return (signs * half) @ yaw_matrix(yaw).T + np.asarray(center, dtype=np.float64)
 
 
+def bearing_span(points, centre) -> float:
+    """The smallest arc (degrees, 0-360) of horizontal directions from `centre` that holds every point (N, 3)
+    (e.g. the cameras that saw an object: a few degrees on a walk past it, over 180 from all around); NaN rows are
+    left out, fewer than two points give 0."""
+    offsets = np.asarray(points, dtype=np.float64).reshape(-1, 3)[:, :2] - np.asarray(centre, np.float64)[:2]
+    offsets = offsets[np.isfinite(offsets).all(axis=1)]
+    if len(offsets) < 2:
+        return 0.0
+    bearings = np.sort(np.arctan2(offsets[:, 1], offsets[:, 0]))
+    gaps = np.diff(np.append(bearings, bearings[0] + 2 * np.pi))
+    return float(np.degrees(2 * np.pi - gaps.max()))
+
+
 @dataclass(eq=False)
 class Box3D:
     """The project's one 3D box: upright, centre (3,) and size (dx, dy, dz) (3,) in metres, yaw about world z

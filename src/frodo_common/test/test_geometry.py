@@ -66,3 +66,18 @@ def test_backproject_pixels_inverts_project_points():
     points = rng.uniform([-0.5, 0.0, 0.0], [1.0, 1.5, 1.2], (50, 3))
     uv, z = g.project_points(K, g.invert_transform(T_wc), points)
     np.testing.assert_allclose(g.backproject_pixels(K, T_wc, uv[:, 0], uv[:, 1], z), points, atol=1e-9)
+
+
+def test_bearing_span_is_the_smallest_arc_holding_every_point():
+    """Across the +-180 degree seam too; NaN rows left out; one point gives 0."""
+    centre = np.array([1.0, -2.0, 0.4])
+
+    def around(degrees):
+        a = np.radians(degrees)
+        return np.c_[1.0 + 2.5 * np.cos(a), -2.0 + 2.5 * np.sin(a), np.full(len(a), 1.4)]
+
+    assert g.bearing_span(around([10, 20, 40]), centre) == pytest.approx(30.0)
+    assert g.bearing_span(around([170, -170, 175]), centre) == pytest.approx(20.0)
+    assert g.bearing_span(around([0, 120, 240]), centre) == pytest.approx(240.0)
+    assert g.bearing_span(np.r_[around([10, 40]), [[np.nan, 0.0, 1.0]]], centre) == pytest.approx(30.0)
+    assert g.bearing_span(around([10]), centre) == 0.0

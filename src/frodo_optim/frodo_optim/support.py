@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from frodo_common.categories import BY_NAME
-from frodo_common.geometry import box_corners, yaw_matrix
+from frodo_common.geometry import bearing_span, box_corners, yaw_matrix
 
 FLOOR_CLASSES = ('chair', 'dining table', 'couch', 'bed')   # stand on the floor (an object on a table does not)
 FACES = {'chair': ('dining table',)}                         # a chair at a table faces it (E_facing)
@@ -176,25 +176,14 @@ def facing_energy(front_xy: torch.Tensor, direction) -> torch.Tensor:
     return 0.5 * (1.0 - cos)
 
 
-def view_span(camera_centres: np.ndarray, centre) -> float:
-    """The smallest arc (degrees, 0-360) of horizontal directions from `centre` that holds every camera centre
-    (V, 3) (world); NaN rows are left out, and no camera gives 0."""
-    offsets = np.asarray(camera_centres, dtype=np.float64).reshape(-1, 3)[:, :2] - np.asarray(centre, np.float64)[:2]
-    offsets = offsets[np.isfinite(offsets).all(axis=1)]
-    if len(offsets) < 2:
-        return 0.0
-    azimuths = np.sort(np.arctan2(offsets[:, 1], offsets[:, 0]))
-    gaps = np.diff(np.append(azimuths, azimuths[0] + 2 * math.pi))
-    return math.degrees(2 * math.pi - float(gaps.max()))
-
-
 def one_sided_share(camera_centres: np.ndarray, centre) -> float:
-    """The share (0-1) of w_facing that E_facing gets: 1 - view_span / 180 degrees, at least 0. The tie it breaks
+    """The share (0-1) of w_facing that E_facing gets: 1 - the arc of directions from the object that holds its
+    cameras (`geometry.bearing_span`, degrees) / 180, at least 0. The tie it breaks
     (front or back, with the seat hidden) is left only by views from one side; views from opposite sides see
     front and back, and there a prior strong enough for the one-sided case overrode them (realcapture-tune2,
-    docs/experiments/frodo_optim_history.md). On the tuning sets the chairs at tables are seen over 3-18 degrees
-    on the walks (median 10) and 178-299 degrees on the handheld captures."""
-    return max(0.0, 1.0 - view_span(camera_centres, centre) / 180.0)
+    docs/experiments/frodo_optim_history.md). On the tuning sets the chairs at tables are seen over 2-43 degrees
+    on the walks (median 10) and 91-300 degrees on the handheld captures (median 254)."""
+    return max(0.0, 1.0 - bearing_span(camera_centres, centre) / 180.0)
 
 
 def facing_weight(weight: float, direction, camera_centres, centre) -> float:
