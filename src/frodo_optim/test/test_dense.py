@@ -159,6 +159,8 @@ def _log_background_every_sample(volume, R, t, s, rays, step, sharpness):
     t1, t2 = (-1 - o) / d, (1 - o) / d
     t_near = torch.minimum(t1, t2).amax(-1).clamp_min(0)
     t_far = torch.maximum(t1, t2).amin(-1)
+    if rays.limit is not None:   # camera depth -> distance along the unit direction in the object frame
+        t_far = torch.minimum(t_far, rays.limit * torch.linalg.norm(rays.direction, dim=-1) / s)
     k = torch.arange(int(math.ceil(2 * math.sqrt(3) / step)), dtype=o.dtype) + 0.5
     ts = t_near[..., None] + k * step
     valid = (ts < t_far[..., None]) & (t_far > t_near)[..., None]
