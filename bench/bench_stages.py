@@ -10,7 +10,9 @@ contract's protocol (`frodo_common.evaluation`); for each matched object the tab
 distance (cm) between the centre of the ground-truth mesh's bounding box and the association box's centre
 ("assoc", with its vertical offset "dz") and each stage mesh's bounding-box centre ("c"), and each stage's
 F1@5cm and COMP@5cm against that ground-truth object alone (`--json` also keeps each stage's own words, e.g. the
-sparse start that won). The bag line counts the ground-truth objects
+sparse start that won, and each stage code's `code_er`: the code regulariser Er of the sparse and dense stages, the
+mean squared distance from the prior's training codes in their standard deviations, about 1 for a training shape).
+The bag line counts the ground-truth objects
 found, false positives and the classes missed. The last lines pool every bag: per class and stage the mean
 F1, mean COMP and the median centre error. Used for issue 27 (docs/experiments/frodo_association_history.md,
 "Starved views, and where realwalk-tune loses its objects").
@@ -54,6 +56,8 @@ from frodo_common.bag import BagReader                            # noqa: E402
 from frodo_common.evaluation import (EvalObject, evaluate, load_ground_truth, point_metrics,   # noqa: E402
                                      sample_surface)
 from frodo_datasets.synth import sidecar_path                     # noqa: E402
+from frodo_optim.sparse import code_statistics                    # noqa: E402
+from frodo_shape.prior import ShapePrior                          # noqa: E402
 
 STAGES = ('fused', 'sparse', 'dense')
 ORACLES = ('as_is', 'centred', 'turned', 'scaled')
@@ -124,14 +128,20 @@ def score_bag(bag: str, config: PipelineConfig | None, oracle: bool = False,
     gt = load_ground_truth(bag)
     meshes: dict[int, dict[str, object]] = {}
     details: dict[int, dict[str, str]] = {}
+    code_er: dict[int, dict[str, float]] = {}
+    optim = (config or PipelineConfig()).optim
+    prior = ShapePrior.load(optim.prior, device=optim.device)
+    mean, std = (x.numpy() for x in code_statistics(prior.training_codes))
 
     def keep(stage) -> None:
         if stage.estimate is not None:
             meshes.setdefault(stage.object_id, {})[stage.stage] = stage.estimate.mesh_world.copy()
+            code_er.setdefault(stage.object_id, {})[stage.stage] = float(
+                np.mean(((np.asarray(stage.estimate.code) - mean) / std) ** 2))
         details.setdefault(stage.object_id, {})[stage.stage] = stage.detail
 
     t0 = time.perf_counter()
-    result = reconstruct(bag, config, on_stage=keep)
+    result = reconstruct(bag, config, on_stage=keep, prior=prior)
     seconds = time.perf_counter() - t0
     final = [EvalObject(oid, e.class_name, e.mesh_world) for oid, e in result.estimates.items()]
     report = evaluate(final, gt)
@@ -152,7 +162,8 @@ def score_bag(bag: str, config: PipelineConfig | None, oracle: bool = False,
                           'f1': scored[0].f1 if scored else 0.0, 'comp': scored[0].comp if scored else 0.0,
                           'top_cm': 100 * float(mesh.bounds[1, 2] - g.mesh.bounds[1, 2]),
                           'bottom_cm': 100 * float(mesh.bounds[0, 2] - g.mesh.bounds[0, 2]),
-                          'detail': details.get(pair.pred_id, {}).get(stage, '')}
+                          'detail': details.get(pair.pred_id, {}).get(stage, ''),
+                          'code_er': code_er[pair.pred_id][stage]}
         if oracle:
             row['oracle'] = oracle_f1(result.estimates[pair.pred_id].mesh_world, g.mesh)
         rows.append(row)

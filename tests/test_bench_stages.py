@@ -27,6 +27,8 @@ def test_every_stage_of_the_orbit_bags_object_is_scored(capsys, tmp_path):
     # the orbit sees its object whole: each stage keeps the placement good, and dense is no worse than fused
     assert all(row[s]['f1'] > 90 and row[s]['centre_cm'] < 5 for s in bench.STAGES)
     assert row['dense']['f1'] >= row['fused']['f1']
+    # a design the prior was trained on stays among its training codes (Er about 1 for those)
+    assert all(0 < row[s]['code_er'] < 3 for s in bench.STAGES), {s: row[s]['code_er'] for s in bench.STAGES}
     text = bench.object_line(row)
     assert 'fused c' in text and 'dense c' in text
     (pooled,) = [p for p in bench.pooled_lines(rows) if ' dense ' in p]
